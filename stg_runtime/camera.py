@@ -1,0 +1,158 @@
+"""Pinhole cameras in the OpenCV convention (x right, y down, z forward), world-to-camera poses.
+
+Pixel (column u, row v) has its centre at (u + 0.5, v + 0.5); see formats/stg-v1.md, section 1.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A pinhole camera.
+
+    fx, fy, cx, cy: intrinsics in pixels; width, height: image size in pixels;
+    world_to_camera: (4, 4) float64 rigid transform, x_cam = R @ x_world + t.
+    """
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    world_to_camera: np.ndarray = field(repr=False)
+    name: str = ""
+
+    def __post_init__(self):
+        w2c = np.array(self.world_to_camera, dtype=np.float64).reshape(4, 4)
+        w2c.setflags(write=False)
+        object.__setattr__(self, "world_to_camera", w2c)
+        object.__setattr__(self, "width", int(self.width))
+        object.__setattr__(self, "height", int(self.height))
+        for name in ("fx", "fy", "cx", "cy"):
+            object.__setattr__(self, name, float(getattr(self, name)))
+        if self.width <= 0 or self.height <= 0:
+            raise ValueError(f"camera {self.name!r}: image size must be positive, got {self.width}x{self.height}")
+        if not (self.fx > 0 and self.fy > 0):
+            raise ValueError(f"camera {self.name!r}: focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+        if not np.all(np.isfinite(w2c)):
+            raise ValueError(f"camera {self.name!r}: world_to_camera has non-finite entries")
+
+    # -- constructors -------------------------------------------------------------------------
+    @classmethod
+    def from_opencv(cls, K, world_to_camera, width: int, height: int, name: str = "") -> "Camera":
+        """From a 3x3 intrinsic matrix K and a 4x4 (or 3x4) world-to-camera matrix."""
+        K = np.asarray(K, dtype=np.float64)
+        w2c = np.eye(4)
+        w2c[: np.shape(world_to_camera)[0]] = np.asarray(world_to_camera, dtype=np.float64)
+        return cls(K[0, 0], K[1, 1], K[0, 2], K[1, 2], width, height, w2c, name)
+
+    @classmethod
+    def look_at(cls, eye, target, up, fov_deg: float, width: int, height: int, name: str = "") -> "Camera":
+        """A camera at `eye` looking at `target`; `up` is the world direction that appears up in the
+        image; `fov_deg` is the vertical field of view in degrees; principal point at the image centre."""
+        eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
+        forward = target - eye
+        if np.linalg.norm(forward) == 0:
+            raise ValueError("look_at: eye and target coincide")
+        z = forward / np.linalg.norm(forward)
+        x = np.cross(z, -up)  # image y points down, so the image's up is -y
+        if np.linalg.norm(x) < 1e-12:
+            raise ValueError("look_at: up is parallel to the viewing direction")
+        x /= np.linalg.norm(x)
+        y = np.cross(z, x)
+        R = np.stack([x, y, z])
+        w2c = np.eye(4)
+        w2c[:3, :3] = R
+        w2c[:3, 3] = -R @ eye
+        f = 0.5 * height / np.tan(np.radians(fov_deg) / 2)
+        return cls(f, f, width / 2, height / 2, width, height, w2c, name)
+
+    # -- derived quantities ---------------------------------------------------------------------
+    @property
+    def R(self) -> np.ndarray:
+        """(3, 3) world-to-camera rotation."""
+        return self.world_to_camera[:3, :3]
+
+    @property
+    def t(self) -> np.ndarray:
+        """(3,) world-to-camera translation."""
+        return self.world_to_camera[:3, 3]
+
+    @property
+    def center(self) -> np.ndarray:
+        """(3,) camera centre in world coordinates."""
+        return -self.R.T @ self.t
+
+    @property
+    def K(self) -> np.ndarray:
+        """(3, 3) intrinsic matrix."""
+        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
+
+    def resized(self, width: int, height: int) -> "Camera":
+        """The same camera with the image scaled to width x height (intrinsics scaled to match)."""
+        sx, sy = width / self.width, height / self.height
+        return Camera(self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, width, height,
+                      self.world_to_camera, self.name)
+
+    def ray_directions(self) -> np.ndarray:
+        """(H, W, 3) float64 unit directions, in world coordinates, through every pixel centre."""
+        u = (np.arange(self.width) + 0.5 - self.cx) / self.fx
+        v = (np.arange(self.height) + 0.5 - self.cy) / self.fy
+        d = np.empty((self.height, self.width, 3))
+        d[..., 0] = u[None, :]
+        d[..., 1] = v[:, None]
+        d[..., 2] = 1.0
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        return d @ self.R  # row vector form of R^T d
+
+    # -- serialisation (used by the file format and camera-path files) --------------------------
+    def to_dict(self) -> dict:
+        return {"name": self.name, "width": self.width, "height": self.height, "fx": self.fx,
+                "fy": self.fy, "cx": self.cx, "cy": self.cy,
+                "world_to_camera": [float(v) for v in self.world_to_camera.ravel()]}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Camera":
+        return cls(d["fx"], d["fy"], d["cx"], d["cy"], d["width"], d["height"],
+                   np.asarray(d["world_to_camera"], dtype=np.float64).reshape(4, 4), d.get("name", ""))
+
+
+def orbit(cameras, num_frames: int, target=None, radius=None, width=None, height=None) -> list[Camera]:
+    """A closed circular camera path of `num_frames` views around the mean of `cameras`.
+
+    The circle lies in the plane orthogonal to the rig's mean viewing direction, centred on the mean
+    camera centre (the usual orbit for forward-facing rigs); every view looks at `target`, by default a
+    point in front of the rig at 4x the rig's spread (at least 1 unit). `radius` defaults to the rig's
+    mean spread, at least 5% of the distance to the target. Intrinsics follow the first camera, resized
+    to width x height when given.
+    """
+    cameras = list(cameras)
+    if not cameras:
+        raise ValueError("orbit: no cameras")
+    base = cameras[0] if width is None else cameras[0].resized(width, height or round(width * cameras[0].height / cameras[0].width))
+    centers = np.stack([c.center for c in cameras])
+    mid = centers.mean(axis=0)
+    forward = np.mean([c.R[2] for c in cameras], axis=0)
+    forward /= np.linalg.norm(forward)
+    down = np.mean([c.R[1] for c in cameras], axis=0)
+    if target is None:
+        target = mid + forward * max(1.0, 4 * np.linalg.norm(centers - mid, axis=1).max())
+    target = np.asarray(target, dtype=np.float64)
+    dist = np.linalg.norm(target - mid)
+    if radius is None:
+        radius = max(np.linalg.norm(centers - mid, axis=1).mean(), 0.05 * dist)
+    right = np.cross(down, forward)
+    right /= np.linalg.norm(right)
+    up_axis = np.cross(forward, right)
+    fov = np.degrees(2 * np.arctan(0.5 * base.height / base.fy))
+    path = []
+    for i in range(num_frames):
+        a = 2 * np.pi * i / num_frames
+        eye = mid + radius * (np.cos(a) * right + np.sin(a) * up_axis)
+        cam = Camera.look_at(eye, target, -down, fov, base.width, base.height, name=f"orbit{i:04d}")
+        path.append(cam)
+    return path

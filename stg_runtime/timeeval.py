@@ -1,0 +1,104 @@
+"""Time evaluation of Spacetime Gaussians (paper Eq. 7-10; formats/stg-v1.md, section 2)."""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numba
+import numpy as np
+
+from .model import Segment
+
+#: Gaussians whose temporal opacity falls below this contribute nothing (formats/stg-v1.md, section 3).
+MIN_ALPHA = 1.0 / 255.0
+
+
+class GaussiansAt(NamedTuple):
+    """Static 3D Gaussians at one instant. index: (M,) int64 rows of the segment they came from;
+    means (M, 3); quats (M, 4) unit wxyz; scales (M, 3); opacities (M,); features (M, C). float32."""
+
+    index: np.ndarray
+    means: np.ndarray
+    quats: np.ndarray
+    scales: np.ndarray
+    opacities: np.ndarray
+    features: np.ndarray
+
+
+@numba.njit(cache=True)
+def _temporal_opacity(opacity, t_center, t_scale, tau, out):
+    for i in range(opacity.shape[0]):
+        d = tau - t_center[i]
+        out[i] = opacity[i] * np.exp(-t_scale[i] * d * d)
+
+
+@numba.njit(parallel=True, cache=True)
+def _evaluate(index, tau, t_center, position, rotation, scale, features, time_channels,
+              means, quats, scales, feats):
+    n_pos = position.shape[1]
+    n_rot = rotation.shape[1]
+    channels = features.shape[1]
+    first_time = channels - time_channels
+    for j in numba.prange(index.shape[0]):
+        i = index[j]
+        d = tau - t_center[i]
+        for a in range(3):  # Horner: b_0 + d (b_1 + d (b_2 + ...))
+            acc = position[i, n_pos - 1, a]
+            for k in range(n_pos - 2, -1, -1):
+                acc = acc * d + position[i, k, a]
+            means[j, a] = acc
+        norm = 0.0
+        for a in range(4):
+            acc = rotation[i, n_rot - 1, a]
+            for k in range(n_rot - 2, -1, -1):
+                acc = acc * d + rotation[i, k, a]
+            quats[j, a] = acc
+            norm += acc * acc
+        norm = np.sqrt(norm)
+        if norm > 0.0:
+            for a in range(4):
+                quats[j, a] /= norm
+        else:  # a zero quaternion has no rotation; use the identity
+            quats[j, 0] = 1.0
+        for a in range(3):
+            scales[j, a] = scale[i, a]
+        for c in range(first_time):
+            feats[j, c] = features[i, c]
+        for c in range(first_time, channels):
+            feats[j, c] = d * features[i, c]
+
+
+def time_channels(segment: Segment) -> int:
+    """How many trailing feature channels are multiplied by (tau - t_center): 3 for full, 0 for lite."""
+    return 3 if segment.channels == 9 else 0
+
+
+def evaluate(segment: Segment, tau: float, min_opacity: float = MIN_ALPHA) -> GaussiansAt:
+    """The segment's Gaussians at normalised time tau, keeping those with opacity(tau) >= min_opacity."""
+    opac = np.empty(segment.count, dtype=np.float32)
+    _temporal_opacity(segment.opacity, segment.t_center, segment.t_scale, np.float32(tau), opac)
+    index = np.flatnonzero(opac >= min_opacity)
+    m, c = index.shape[0], segment.channels
+    means = np.empty((m, 3), np.float32)
+    quats = np.empty((m, 4), np.float32)
+    scales = np.empty((m, 3), np.float32)
+    feats = np.empty((m, c), np.float32)
+    _evaluate(index, np.float32(tau), segment.t_center, segment.position, segment.rotation, segment.scale,
+              segment.features, time_channels(segment), means, quats, scales, feats)
+    return GaussiansAt(index, means, quats, scales, opac[index], feats)
+
+
+def evaluate_reference(segment: Segment, tau: float) -> dict[str, np.ndarray]:
+    """Float64 numpy transcription of the spec's formulas for every Gaussian (for tests)."""
+    d = tau - segment.t_center.astype(np.float64)
+    powers = d[:, None] ** np.arange(segment.position_degree + 1)[None, :]
+    means = np.einsum("nk,nka->na", powers, segment.position.astype(np.float64))
+    rpow = d[:, None] ** np.arange(segment.rotation_degree + 1)[None, :]
+    quats = np.einsum("nk,nka->na", rpow, segment.rotation.astype(np.float64))
+    quats /= np.linalg.norm(quats, axis=1, keepdims=True)
+    feats = segment.features.astype(np.float64).copy()
+    tc = time_channels(segment)
+    if tc:
+        feats[:, -tc:] *= d[:, None]
+    opacity = segment.opacity * np.exp(-segment.t_scale.astype(np.float64) * d ** 2)
+    return {"means": means, "quats": quats, "scales": segment.scale.astype(np.float64),
+            "opacities": opacity, "features": feats}
