@@ -1,0 +1,351 @@
+"""Read and write `.stg` files, exactly as formats/stg-v1.md section 4 says.
+
+A file is: magic, version, header length, a UTF-8 JSON header, a data section of blobs, and the SHA-256
+of everything before it. Nothing is unpickled or executed. Every problem with a file raises FormatError,
+whose message starts with the file's name.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import secrets
+import struct
+import zlib
+
+import numpy as np
+
+from . import onnx_mlp
+from .camera import Camera
+from .model import ACTIVATIONS, ATTRIBUTES, FEATURE_CHANNELS, KINDS, Model, Segment, attribute_shape
+
+MAGIC = b"\x89STG\r\n\x1a\n"
+VERSION = (1, 0)
+PREFIX = struct.Struct("<8sHHQ")  # magic, major, minor, header length
+MAX_HEADER = 64 << 20
+ALIGN = 8
+ENCODINGS = {"f32": np.dtype("<f4"), "f16": np.dtype("<f2"), "u8": np.dtype("u1"), "u16": np.dtype("<u2")}
+CODECS = ("raw", "zlib")
+
+
+class FormatError(ValueError):
+    """A file that is not a valid .stg file; the message starts with the file's name."""
+
+
+# -- quantization (spec table "Quantization and its error bounds") --------------------------------
+
+
+def _channels(a: np.ndarray) -> np.ndarray:
+    """(N, ...) -> (N, channels): every axis but the first flattened."""
+    if a.ndim == 0:
+        raise ValueError("an array needs a first (count) axis")
+    return a.reshape(a.shape[0], math.prod(a.shape[1:]))
+
+
+def _affine(a: np.ndarray, levels: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per-channel float32 (offset, scale) = (min, (max - min) / levels), scale rounded up to float32."""
+    x = _channels(a)
+    if x.shape[0] == 0:
+        return np.zeros(x.shape[1], np.float32), np.zeros(x.shape[1], np.float32)
+    lo, hi = x.min(axis=0), x.max(axis=0)
+    exact = (hi.astype(np.float64) - lo) / levels
+    scale = exact.astype(np.float32)
+    return lo, np.where(scale < exact, np.nextafter(scale, np.float32(np.inf)), scale)
+
+
+def quantize(array, encoding: str) -> tuple[np.ndarray, dict]:
+    """array (N, ...) -> (stored values of the same shape in the encoding's little-endian dtype, params).
+
+    params is {} for f32 / f16 and {"offset": [C floats], "scale": [C floats]} for u8 / u16, with C the
+    channel count (every axis but the first flattened). Raises ValueError for non-finite values, values
+    beyond +-65504 under f16, and unknown encodings.
+    """
+    if encoding not in ENCODINGS:
+        raise ValueError(f"unknown encoding {encoding!r} (expected one of {sorted(ENCODINGS)})")
+    a = np.asarray(array, dtype=np.float32)
+    if not np.all(np.isfinite(a)):
+        raise ValueError("non-finite values cannot be written")
+    if encoding == "f16" and a.size and np.abs(a).max() > 65504:
+        raise ValueError(f"values up to {np.abs(a).max():g} do not fit f16 (|x| <= 65504)")
+    if encoding in ("f32", "f16"):
+        return a.astype(ENCODINGS[encoding]), {}
+    levels = np.iinfo(ENCODINGS[encoding]).max
+    offset, scale = _affine(a, levels)
+    q = np.rint((_channels(a) - offset.astype(np.float64)) / np.where(scale > 0, scale, 1.0))
+    stored = np.clip(q, 0, levels).astype(ENCODINGS[encoding]).reshape(a.shape)
+    return stored, {"offset": offset.tolist(), "scale": scale.tolist()}
+
+
+def dequantize(stored: np.ndarray, encoding: str, params: dict | None = None) -> np.ndarray:
+    """Stored values (N, ...) -> float32 values of the same shape (computed in float64, then cast)."""
+    if encoding in ("f32", "f16"):
+        return stored.astype(np.float32)
+    if encoding not in ENCODINGS:
+        raise ValueError(f"unknown encoding {encoding!r}")
+    q = _channels(stored)
+    offset, scale = (np.asarray((params or {}).get(k), np.float32).astype(np.float64) for k in ("offset", "scale"))
+    if offset.shape != (q.shape[1],) or scale.shape != (q.shape[1],):
+        raise ValueError(f"{encoding} needs lists 'offset' and 'scale' of {q.shape[1]} numbers")
+    with np.errstate(over="ignore"):  # values beyond float32 become inf, which readers refuse
+        return (offset + scale * q).astype(np.float32).reshape(stored.shape)
+
+
+def error_bound(array, encoding: str):
+    """The spec's bound on |dequantize(quantize(array)) - array|, broadcastable against (N, C).
+
+    f32: 0.0; f16: per value (N, C); u8 / u16: per channel (C,) = scale / 2 + 2^-23 max |x|.
+    """
+    x = _channels(np.asarray(array, dtype=np.float32)).astype(np.float64)
+    if encoding not in ENCODINGS:
+        raise ValueError(f"unknown encoding {encoding!r}")
+    if encoding == "f32":
+        return 0.0
+    if encoding == "f16":
+        return np.where(np.abs(x) >= 2.0**-14, np.abs(x) * 2.0**-11, 2.0**-25)
+    _, scale = _affine(x.astype(np.float32), np.iinfo(ENCODINGS[encoding]).max)
+    biggest = np.abs(x).max(axis=0) if x.shape[0] else np.zeros(x.shape[1])
+    return scale / 2.0 + 2.0**-23 * biggest
+
+
+# -- writing ------------------------------------------------------------------------------------
+
+
+def dumps(model: Model, encodings: dict[str, str] | None = None, codec: str = "zlib", level: int = 6,
+          provenance: dict | None = None) -> bytes:
+    """The bytes of a .stg file holding `model`; see save()."""
+    encodings = dict(encodings or {})
+    unknown = set(encodings) - set(ATTRIBUTES)
+    if unknown:
+        raise ValueError(f"encodings: unknown attributes {sorted(unknown)}")
+    if codec not in CODECS:
+        raise ValueError(f"unknown codec {codec!r} (expected one of {CODECS})")
+    model.validate()
+    data = bytearray()
+
+    def blob(payload: bytes, blob_codec: str) -> dict:
+        data.extend(bytes(-len(data) % ALIGN))
+        payload = zlib.compress(payload, level) if blob_codec == "zlib" else payload
+        entry = {"offset": len(data), "length": len(payload), "codec": blob_codec}
+        data.extend(payload)
+        return entry
+
+    segments = []
+    for i, seg in enumerate(model.segments):
+        seg.validate()
+        attributes = {}
+        for name, values in seg.arrays().items():
+            encoding = encodings.get(name, "f32")
+            try:
+                stored, params = quantize(values, encoding)
+            except ValueError as e:
+                raise ValueError(f"segment {i}, attribute {name!r}: {e}") from None
+            attributes[name] = {"shape": list(values.shape), "encoding": encoding, **params,
+                                "data": blob(stored.tobytes(), codec)}
+        decoder = None if seg.decoder is None else {"activation": seg.activation,
+                                                    "data": blob(bytes(seg.decoder), "raw")}
+        segments.append({"start_frame": seg.start_frame, "num_frames": seg.num_frames, "count": seg.count,
+                         "position_degree": seg.position_degree, "rotation_degree": seg.rotation_degree,
+                         "attributes": attributes, "decoder": decoder})
+    bounds = None
+    if model.bounds is not None:
+        lo, hi = np.asarray(model.bounds, dtype=np.float64).reshape(2, 3).tolist()
+        bounds = {"min": lo, "max": hi}
+    provenance = model.provenance if provenance is None else provenance
+    if not isinstance(provenance, dict):
+        raise ValueError("provenance must be a dict")
+    header = {"kind": model.kind, "fps": model.fps, "num_frames": model.num_frames, "segments": segments,
+              "cameras": [c.to_dict() for c in model.cameras], "bounds": bounds, "provenance": provenance}
+    text = _json(header).encode("utf-8")
+    text += b" " * (-(PREFIX.size + len(text)) % ALIGN)  # the data section starts 8-byte aligned
+    body = PREFIX.pack(MAGIC, *VERSION, len(text)) + text + bytes(data)
+    return body + hashlib.sha256(body).digest()
+
+
+def _json(value, indent: str = "") -> str:
+    """JSON with one line per short object (an attribute with its blob) and per list of numbers."""
+    flat = json.dumps(value, allow_nan=False)
+    if len(flat) <= 120 or not isinstance(value, (dict, list)) or not value or (
+            isinstance(value, list) and not any(isinstance(v, (dict, list)) for v in value)):
+        return flat
+    inner = indent + " "
+    if isinstance(value, dict):
+        lines = [f"{inner}{json.dumps(k)}: {_json(v, inner)}" for k, v in value.items()]
+        return "{\n" + ",\n".join(lines) + "\n" + indent + "}"
+    return "[\n" + ",\n".join(inner + _json(v, inner) for v in value) + "\n" + indent + "]"
+
+
+def save(model: Model, path, encodings: dict[str, str] | None = None, codec: str = "zlib", level: int = 6,
+         provenance: dict | None = None) -> None:
+    """Write `model` to `path` atomically (temporary file in the same directory, fsync, rename).
+
+    encodings: attribute name -> "f32" (default), "f16", "u8" or "u16". codec: "zlib" (level 0-9) or
+    "raw" for the attribute blobs; the decoder is always stored raw. provenance overrides
+    model.provenance. Raises ValueError (naming the attribute) for values the encoding cannot hold;
+    on any error nothing is left at a new path.
+    """
+    payload = dumps(model, encodings, codec, level, provenance)
+    path = os.fspath(path)
+    tmp = f"{path}.{secrets.token_hex(4)}.tmp"
+    try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
+        with open(fd, "wb") as f:
+            f.write(payload)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+# -- reading ------------------------------------------------------------------------------------
+
+
+def load(path) -> Model:
+    """Read a .stg file. Raises FormatError for any problem with its contents (OSError if unreadable)."""
+    with open(path, "rb") as f:
+        data = f.read()
+    return loads(data, os.fsdecode(path))
+
+
+def loads(data: bytes, name: str = "<bytes>") -> Model:
+    """Read a .stg file from bytes; `name` starts every FormatError message."""
+    try:
+        return _decode(memoryview(data).cast("B"))
+    except ValueError as e:  # includes json, UTF-8 and onnx_mlp errors
+        raise FormatError(f"{name}: {e}") from e
+    except (KeyError, TypeError, IndexError, OverflowError, RecursionError, struct.error, zlib.error) as e:
+        raise FormatError(f"{name}: malformed file ({type(e).__name__}: {e})") from e
+
+
+def _get(obj: dict, key: str, kind: type, where: str):
+    """obj[key], which must exist and be an int (kind=int), a number (float), a str, a list or a dict."""
+    if key not in obj:
+        raise ValueError(f"{where}: missing field {key!r}")
+    value = obj[key]
+    if isinstance(value, bool) or not isinstance(value, (int, float) if kind is float else kind):
+        raise ValueError(f"{where}: field {key!r} must be of type {kind.__name__}, got {type(value).__name__}")
+    return value
+
+
+def _decode(buf: memoryview) -> Model:
+    if len(buf) < PREFIX.size:
+        raise ValueError(f"truncated: {len(buf)} bytes, shorter than the {PREFIX.size}-byte prefix")
+    magic, major, minor, length = PREFIX.unpack_from(buf)
+    if magic != MAGIC:
+        raise ValueError("not an STG file (wrong magic bytes)")
+    if major != VERSION[0]:
+        raise ValueError(f"unsupported version {major}.{minor} (this reader reads {VERSION[0]}.x)")
+    if length > MAX_HEADER:
+        raise ValueError(f"header length {length} exceeds the {MAX_HEADER}-byte limit")
+    start = PREFIX.size + length
+    if len(buf) < start + 32:
+        raise ValueError(f"truncated: header says {length} header bytes, file has {len(buf)} bytes in all")
+    if hashlib.sha256(buf[:-32]).digest() != bytes(buf[-32:]):
+        raise ValueError("checksum mismatch: the file is corrupt or truncated")
+    header = json.loads(bytes(buf[PREFIX.size:start]).decode("utf-8"))
+    if not isinstance(header, dict):
+        raise ValueError("header is not a JSON object")
+    section = buf[start:-32]
+    kind = _get(header, "kind", str, "header")
+    if kind not in KINDS:
+        raise ValueError(f"header: kind must be one of {KINDS}, got {kind!r}")
+    segments = [_segment(s, f"segment {i}", kind, section)
+                for i, s in enumerate(_get(header, "segments", list, "header"))]
+    if not segments:
+        raise ValueError("header: no segments")
+    if _get(header, "num_frames", int, "header") != sum(s.num_frames for s in segments):
+        raise ValueError(f"header: num_frames {header['num_frames']} is not the segments' total")
+    cameras = []
+    for i, c in enumerate(_get(header, "cameras", list, "header") if "cameras" in header else []):
+        try:
+            cameras.append(Camera.from_dict(c))
+        except (KeyError, TypeError, ValueError) as e:
+            raise ValueError(f"camera {i}: invalid ({type(e).__name__}: {e})") from e
+    bounds = header.get("bounds")
+    if bounds is not None:
+        lo, hi = (np.asarray(_get(bounds, k, list, "bounds"), dtype=np.float64) for k in ("min", "max"))
+        if lo.shape != (3,) or hi.shape != (3,) or not np.all(np.isfinite([lo, hi])):
+            raise ValueError("bounds: min and max must be 3 finite numbers each")
+        bounds = (tuple(lo.tolist()), tuple(hi.tolist()))
+    provenance = header.get("provenance", {})
+    if not isinstance(provenance, dict):
+        raise ValueError("header: provenance must be an object")
+    return Model(kind, _get(header, "fps", float, "header"), segments, cameras, bounds, provenance)
+
+
+def _segment(s, where: str, kind: str, section: memoryview) -> Segment:
+    if not isinstance(s, dict):
+        raise ValueError(f"{where}: not a JSON object")
+    start, frames, count, pdeg, qdeg = (_get(s, k, int, where) for k in
+                                        ("start_frame", "num_frames", "count", "position_degree", "rotation_degree"))
+    if min(start, count, pdeg, qdeg) < 0 or frames <= 0:
+        raise ValueError(f"{where}: negative count/degree/start_frame or num_frames <= 0")
+    attributes = _get(s, "attributes", dict, where)
+    arrays = {}
+    for name in ATTRIBUTES:
+        if name not in attributes:
+            raise ValueError(f"{where}: missing attribute {name!r}")
+        shape = attribute_shape(name, count, pdeg, qdeg, FEATURE_CHANNELS[kind])
+        arrays[name] = _array(attributes[name], shape, section, f"{where}, attribute {name!r}")
+    decoder, activation = s.get("decoder"), "sigmoid"
+    if decoder is not None:
+        if not isinstance(decoder, dict):
+            raise ValueError(f"{where}: decoder must be an object or null")
+        activation = _get(decoder, "activation", str, f"{where}, decoder")
+        if activation not in ACTIVATIONS:
+            raise ValueError(f"{where}, decoder: activation must be one of {ACTIVATIONS}, got {activation!r}")
+        decoder = bytes(_blob(_get(decoder, "data", dict, f"{where}, decoder"), section, None, f"{where}, decoder"))
+        try:
+            onnx_mlp.check_graph(decoder)
+        except ValueError as e:
+            raise ValueError(f"{where}, decoder: {e}") from e
+    try:
+        return Segment(start, frames, decoder=decoder, activation=activation, **arrays)
+    except ValueError as e:
+        raise ValueError(f"{where}: {e}") from e
+
+
+def _array(spec, shape: tuple, section: memoryview, where: str) -> np.ndarray:
+    """An array entry {"shape", "encoding", ["offset", "scale"], "data": blob} -> float32 array of `shape`."""
+    if not isinstance(spec, dict):
+        raise ValueError(f"{where}: not a JSON object")
+    if _get(spec, "shape", list, where) != list(shape):
+        raise ValueError(f"{where}: shape {spec['shape']} disagrees with count and degrees, expected {list(shape)}")
+    encoding = _get(spec, "encoding", str, where)
+    if encoding not in ENCODINGS:
+        raise ValueError(f"{where}: unknown encoding {encoding!r}")
+    size = math.prod(shape) * ENCODINGS[encoding].itemsize
+    stored = np.frombuffer(_blob(_get(spec, "data", dict, where), section, size, where), ENCODINGS[encoding])
+    try:
+        values = dequantize(stored.reshape(shape), encoding, spec)
+    except (ValueError, TypeError) as e:
+        raise ValueError(f"{where}: {e}") from e
+    if not np.all(np.isfinite(values)):
+        raise ValueError(f"{where}: decoded values are not all finite")
+    return values
+
+
+def _blob(spec: dict, section: memoryview, size: int | None, where: str):
+    """The decoded bytes of a blob {"offset", "length", "codec"}; `size` is the decoded size it must have
+    (None: any, and the blob must be raw)."""
+    offset, length = _get(spec, "offset", int, where), _get(spec, "length", int, where)
+    codec = _get(spec, "codec", str, where)
+    if offset < 0 or length < 0 or offset + length > len(section):
+        raise ValueError(f"{where}: blob [{offset}, {offset + length}) lies outside the "
+                         f"{len(section)}-byte data section")
+    data = section[offset:offset + length]
+    if codec not in (CODECS if size is not None else ("raw",)):  # a decoder's size is not implied: raw only
+        raise ValueError(f"{where}: unsupported codec {codec!r}")
+    if codec == "zlib":
+        inflater = zlib.decompressobj()
+        data = inflater.decompress(data, max(size, 1))  # never more than `size` bytes (0 means no limit)
+        if not inflater.eof:
+            data += inflater.decompress(inflater.unconsumed_tail, 1)
+        if not inflater.eof or inflater.unused_data:
+            raise ValueError(f"{where}: zlib data does not end after {size} bytes (longer, cut short or with junk)")
+    if size is not None and len(data) != size:
+        raise ValueError(f"{where}: blob holds {len(data)} bytes, shape and encoding imply {size}")
+    return data
