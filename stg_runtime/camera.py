@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Camera:
     """A pinhole camera.
 
@@ -41,6 +41,11 @@ class Camera:
         if not np.all(np.isfinite(w2c)):
             raise ValueError(f"camera {self.name!r}: world_to_camera has non-finite entries")
 
+    def __eq__(self, other) -> bool:
+        return isinstance(other, Camera) and self.to_dict() == other.to_dict()
+
+    __hash__ = None
+
     # -- constructors -------------------------------------------------------------------------
     @classmethod
     def from_opencv(cls, K, world_to_camera, width: int, height: int, name: str = "") -> "Camera":
@@ -59,7 +64,7 @@ class Camera:
         if np.linalg.norm(forward) == 0:
             raise ValueError("look_at: eye and target coincide")
         z = forward / np.linalg.norm(forward)
-        x = np.cross(z, -up)  # image y points down, so the image's up is -y
+        x = np.cross(z, up)  # right = forward x up (image y points down)
         if np.linalg.norm(x) < 1e-12:
             raise ValueError("look_at: up is parallel to the viewing direction")
         x /= np.linalg.norm(x)

@@ -1,0 +1,70 @@
+"""The colour decoder: splatted features (H, W, C) -> rgb (H, W, 3) (formats/stg-v1.md, section 2)."""
+from __future__ import annotations
+
+import numpy as np
+import onnxruntime as ort
+
+from .camera import Camera
+from .onnx_mlp import check_graph
+
+
+def activate(x: np.ndarray, activation: str) -> np.ndarray:
+    """The decoder's output activation, then clamped to [0, 1] for display."""
+    if activation == "sigmoid":
+        x = 1.0 / (1.0 + np.exp(-x))
+    return np.clip(x, 0.0, 1.0, out=x)
+
+
+class Decoder:
+    """Runs a segment's ONNX decoder with onnxruntime on the CPU.
+
+    onnx_bytes: a graph with one float32 input (P, C + 3) and one float32 output (P, 3), where C is the
+    feature channel count; activation: "sigmoid", "clamp" or "identity".
+    """
+
+    def __init__(self, onnx_bytes: bytes, activation: str, threads: int = 0):
+        check_graph(onnx_bytes)
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = threads
+        options.log_severity_level = 3
+        self.session = ort.InferenceSession(onnx_bytes, options, providers=["CPUExecutionProvider"])
+        (inp,), (out,) = self.session.get_inputs(), self.session.get_outputs()
+        if len(inp.shape) != 2 or not isinstance(inp.shape[1], int):
+            raise ValueError(f"decoder input must be (pixels, channels), got shape {inp.shape}")
+        if len(out.shape) != 2 or out.shape[1] != 3:
+            raise ValueError(f"decoder output must be (pixels, 3), got shape {out.shape}")
+        self.input_name, self.input_channels = inp.name, inp.shape[1]
+        self.activation = activation
+        self._view_inputs: dict = {}  # per camera: (H*W, 6) [camera centre, ray direction], reused over time
+
+    def view_inputs(self, camera: Camera) -> np.ndarray:
+        """(H * W, 6) float32 [camera centre, unit ray direction] in world coordinates; cached."""
+        key = (camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height,
+               camera.world_to_camera.tobytes())
+        cached = self._view_inputs.get(key)
+        if cached is None:
+            rays = camera.ray_directions().reshape(-1, 3)
+            cached = np.empty((rays.shape[0], 6), np.float32)
+            cached[:, :3] = camera.center
+            cached[:, 3:] = rays
+            if len(self._view_inputs) > 8:
+                self._view_inputs.clear()
+            self._view_inputs[key] = cached
+        return cached
+
+    def __call__(self, features: np.ndarray, camera: Camera) -> np.ndarray:
+        """features (H, W, C) float32 splatted features -> rgb (H, W, 3) float32 in [0, 1]."""
+        h, w, c = features.shape
+        if c + 3 != self.input_channels:
+            raise ValueError(f"decoder expects {self.input_channels - 3} feature channels, got {c}")
+        flat = features.reshape(-1, c)
+        x = np.empty((h * w, c + 3), np.float32)
+        x[:, : c - 3] = flat[:, 3:]
+        x[:, c - 3:] = self.view_inputs(camera)
+        (y,) = self.session.run(None, {self.input_name: x})
+        return activate(flat[:, :3] + y, self.activation).reshape(h, w, 3)
+
+
+def lite_colour(features: np.ndarray) -> np.ndarray:
+    """Lite models: rgb = clamp(F[..., 0:3], 0, 1)."""
+    return np.clip(features[..., :3], 0.0, 1.0)

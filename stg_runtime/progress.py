@@ -1,0 +1,75 @@
+"""A small progress bar on stderr (redrawn in place on a terminal, a line every few seconds otherwise)."""
+from __future__ import annotations
+
+import sys
+import time
+
+
+class Progress:
+    """Usage: `for x in Progress(items, desc="render"): ...`, or `bar = Progress(total=n)` with
+    `bar.update(k)`, `bar.set(loss=0.1)` for figures shown after the bar, and `bar.close()`."""
+
+    def __init__(self, iterable=None, total: int | None = None, desc: str = "", enabled: bool = True,
+                 stream=None, interval: float | None = None):
+        self.iterable = iterable
+        self.total = total if total is not None else (len(iterable) if hasattr(iterable, "__len__") else None)
+        self.desc, self.enabled = desc, enabled
+        self.stream = stream or sys.stderr
+        self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
+        self.interval = interval if interval is not None else (0.1 if self.tty else 5.0)
+        self.count, self.figures, self._drawn = 0, {}, -1
+        self.start = self._last = time.perf_counter()
+
+    def __iter__(self):
+        try:
+            for item in self.iterable:
+                yield item
+                self.update()
+        finally:
+            self.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def set(self, **figures) -> None:
+        self.figures.update(figures)
+
+    def update(self, n: int = 1) -> None:
+        self.count += n
+        now = time.perf_counter()
+        if now - self._last >= self.interval or self.count == self.total:
+            self._last = now
+            self._draw(final=False)
+
+    def close(self) -> None:
+        if self.enabled and self.start is not None and (self.tty or self._drawn != self.count):
+            self._draw(final=True)
+        self.start = None
+
+    def _draw(self, final: bool) -> None:
+        if not self.enabled or self.start is None:
+            return
+        elapsed = time.perf_counter() - self.start
+        rate = self.count / elapsed if elapsed > 0 else 0.0
+        if self.total:
+            frac = min(1.0, self.count / self.total)
+            bar = "#" * int(24 * frac) + "-" * (24 - int(24 * frac))
+            eta = (self.total - self.count) / rate if rate > 0 else 0.0
+            head = f"{self.desc} [{bar}] {self.count}/{self.total} {rate:.2f}/s eta {eta:.0f}s"
+        else:
+            head = f"{self.desc} {self.count} {rate:.2f}/s"
+        tail = " ".join(f"{k}={_fmt(v)}" for k, v in self.figures.items())
+        line = f"{head} {tail}".rstrip()
+        self._drawn = self.count
+        if self.tty:
+            self.stream.write("\r" + line + "\033[K" + ("\n" if final else ""))
+        else:
+            self.stream.write(line + "\n")
+        self.stream.flush()
+
+
+def _fmt(v) -> str:
+    return f"{v:.4g}" if isinstance(v, float) else str(v)

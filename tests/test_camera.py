@@ -1,0 +1,60 @@
+import numpy as np
+import pytest
+
+from stg_runtime import Camera
+from stg_runtime.camera import orbit
+
+
+def test_look_at_projects_target_to_principal_point():
+    cam = Camera.look_at([1, -2, 0.5], [0, 0, 5], [0, -1, 0], 60, 64, 48)
+    p = cam.R @ np.array([0, 0, 5]) + cam.t
+    assert p[2] > 0
+    u, v = cam.fx * p[0] / p[2] + cam.cx, cam.fy * p[1] / p[2] + cam.cy
+    assert (u, v) == pytest.approx((32, 24))
+    np.testing.assert_allclose(cam.center, [1, -2, 0.5], atol=1e-12)
+    np.testing.assert_allclose(cam.R @ cam.R.T, np.eye(3), atol=1e-12)
+    # the world up direction (-y here) appears up in the image (negative image y)
+    up = cam.R @ np.array([0, -1.0, 0])
+    assert up[1] < 0
+
+
+def test_vertical_fov():
+    cam = Camera.look_at([0, 0, 0], [0, 0, 1], [0, -1, 0], 90, 100, 50)
+    assert cam.fy == pytest.approx(25.0)
+
+
+def test_from_opencv_and_dict_round_trip():
+    K = np.array([[500, 0, 320], [0, 510, 240], [0, 0, 1.0]])
+    Rt = np.hstack([np.eye(3), [[0.1], [0.2], [0.3]]])
+    cam = Camera.from_opencv(K, Rt, 640, 480, name="a")
+    assert (cam.fx, cam.fy, cam.cx, cam.cy) == (500, 510, 320, 240)
+    again = Camera.from_dict(cam.to_dict())
+    assert again == cam and again != cam.resized(320, 240)
+    np.testing.assert_array_equal(again.K, cam.K)
+
+
+def test_ray_directions_hit_pixel_centres():
+    cam = Camera.look_at([0.3, 0.1, -1], [0, 0, 4], [0, -1, 0], 40, 20, 10)
+    rays = cam.ray_directions()
+    np.testing.assert_allclose(np.linalg.norm(rays, axis=-1), 1, atol=1e-12)
+    x = cam.center + 3.0 * rays[7, 13]  # a point on the ray of pixel (u=13, v=7)
+    p = cam.R @ x + cam.t
+    assert (cam.fx * p[0] / p[2] + cam.cx, cam.fy * p[1] / p[2] + cam.cy) == pytest.approx((13.5, 7.5))
+
+
+def test_bad_cameras_raise():
+    with pytest.raises(ValueError, match="size"):
+        Camera(1, 1, 0, 0, 0, 10, np.eye(4))
+    with pytest.raises(ValueError, match="focal"):
+        Camera(-1, 1, 0, 0, 10, 10, np.eye(4))
+
+
+def test_orbit_looks_at_target():
+    rig = [Camera.look_at([x, 0, 0], [0, 0, 5], [0, -1, 0], 50, 64, 48) for x in (-0.5, 0, 0.5)]
+    path = orbit(rig, 8, target=[0, 0, 5])
+    assert len(path) == 8
+    for cam in path:
+        p = cam.R @ np.array([0, 0, 5.0]) + cam.t
+        assert p[0] == pytest.approx(0, abs=1e-9) and p[1] == pytest.approx(0, abs=1e-9) and p[2] > 0
+    centres = np.array([c.center for c in path])
+    assert np.ptp(centres[:, 0]) > 0.3  # it moves
