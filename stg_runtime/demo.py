@@ -1,0 +1,147 @@
+"""Procedural Spacetime Gaussian models: a built-in demo scene and random scenes for benchmarks.
+
+World frame: OpenCV-like, y down; the demo rig sits near the origin looking down +z.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .camera import Camera
+from .model import Model, Segment
+from .onnx_mlp import mlp_to_onnx
+
+
+def _logit(p):
+    p = np.clip(p, 1e-4, 1 - 1e-4)
+    return np.log(p / (1 - p))
+
+
+def _fit_cubic(path, tau_samples, t_center):
+    """Least-squares cubic coefficients (N, 4, 3) in (tau - t_center) for positions path (S, N, 3)."""
+    d = tau_samples[:, None] - t_center[None, :]  # (S, N)
+    basis = d[..., None] ** np.arange(4)  # (S, N, 4)
+    coeffs = np.empty((path.shape[1], 4, 3))
+    for i in range(path.shape[1]):
+        coeffs[i], *_ = np.linalg.lstsq(basis[:, i], path[:, i], rcond=None)
+    return coeffs
+
+
+def demo_rig(width: int = 320, height: int = 240, rows: int = 3, cols: int = 3) -> list[Camera]:
+    """A forward-facing grid of cameras 0.3 units apart, all looking at (0, 0, 6)."""
+    cams = []
+    for r in range(rows):
+        for c in range(cols):
+            eye = np.array([(c - (cols - 1) / 2) * 0.3, (r - (rows - 1) / 2) * 0.3, 0.0])
+            cams.append(Camera.look_at(eye, [0, 0, 6.0], [0, -1, 0], 50.0, width, height, name=f"cam{len(cams):02d}"))
+    return cams
+
+
+def demo_model(kind: str = "full", fps: float = 30.0, num_frames: int = 60, seed: int = 0) -> Model:
+    """A small dynamic scene: a patterned back wall, an orbiting ring of coloured blobs (cubic motion
+    fitted to a circle), a spinning bar (polynomial rotation) and a ball that fades in and out
+    (temporal opacity). The full model adds a view-dependent tint through its decoder."""
+    rng = np.random.default_rng(seed)
+    parts = []
+
+    # Back wall: a 64 x 48 grid of flat Gaussians with a colourful pattern, static.
+    gx, gy = np.meshgrid(np.linspace(-4, 4, 64), np.linspace(-3, 3, 48))
+    n = gx.size
+    pos = np.stack([gx.ravel(), gy.ravel(), np.full(n, 8.0)], 1)
+    rgb = 0.5 + 0.5 * np.stack([np.sin(1.5 * gx), np.sin(1.3 * gy + 1), np.cos(gx + gy)], -1).reshape(-1, 3)
+    rgb = 0.25 + 0.5 * rgb
+    parts.append(dict(pos=pos, vel=None, rgb=rgb, scale=np.tile([0.09, 0.09, 0.01], (n, 1)),
+                      opacity=np.full(n, 0.95), t_center=np.full(n, 0.5), t_scale=np.zeros(n)))
+
+    # Orbiting ring of blobs around (0, 0, 5): circular motion fitted by a cubic around t_center.
+    n = 400
+    phase = rng.uniform(0, 2 * np.pi, n)
+    radius = 1.2 + 0.1 * rng.standard_normal(n)
+    tau = np.linspace(0, 1, 33)
+    ang = phase[None, :] + 2 * np.pi * 0.5 * tau[:, None]  # half a turn over the segment
+    path = np.stack([radius * np.cos(ang), 0.3 * np.sin(2 * ang), 5.0 + radius * np.sin(ang)], -1)
+    t_c = np.full(n, 0.5)
+    hue = (phase / (2 * np.pi))[:, None]
+    rgb = 0.5 + 0.45 * np.cos(2 * np.pi * (hue + np.array([0, 1 / 3, 2 / 3])))
+    parts.append(dict(pos=None, coeffs=_fit_cubic(path, tau, t_c), rgb=rgb,
+                      scale=np.full((n, 3), 0.06), opacity=np.full(n, 0.9), t_center=t_c, t_scale=np.zeros(n)))
+
+    # Spinning bar: elongated Gaussians at (0, 0.8, 4) rotating about the z axis, linear quaternion.
+    n = 24
+    off = np.linspace(-0.6, 0.6, n)
+    parts.append(dict(pos=np.stack([off, np.full(n, 0.8), np.full(n, 4.0)], 1), rgb=np.tile([0.95, 0.85, 0.2], (n, 1)),
+                      scale=np.tile([0.08, 0.02, 0.02], (n, 1)), opacity=np.full(n, 0.9), t_center=np.full(n, 0.5),
+                      t_scale=np.zeros(n), spin=True))
+
+    # A ball that fades in and out around the middle of the clip.
+    n = 300
+    d = rng.standard_normal((n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    parts.append(dict(pos=np.array([0.0, -0.6, 4.5]) + 0.45 * d, rgb=np.tile([0.9, 0.2, 0.25], (n, 1)) + 0.05 * rng.standard_normal((n, 3)),
+                      scale=np.full((n, 3), 0.07), opacity=np.full(n, 0.95), t_center=np.full(n, 0.5), t_scale=np.full(n, 40.0)))
+
+    arrays = {k: [] for k in ("opacity", "t_center", "t_scale", "position", "rotation", "scale", "features")}
+    for p in parts:
+        n = p["rgb"].shape[0]
+        coeffs = p.get("coeffs")
+        if coeffs is None:
+            coeffs = np.zeros((n, 4, 3))
+            coeffs[:, 0] = p["pos"]
+        rot = np.zeros((n, 2, 4))
+        rot[:, 0, 0] = 1.0
+        if p.get("spin"):
+            rot[:, 1, 3] = 3.0  # q(d) = (1, 0, 0, 3 d): about +-70 degrees over the clip
+        base = np.clip(p["rgb"], 0, 1)
+        if kind == "full":
+            feats = np.concatenate([_logit(base), 0.5 * rng.standard_normal((n, 3)), 0.5 * rng.standard_normal((n, 3))], 1)
+        else:
+            feats = base
+        for k, v in (("opacity", p["opacity"]), ("t_center", p["t_center"]), ("t_scale", p["t_scale"]),
+                     ("position", coeffs), ("rotation", rot), ("scale", p["scale"]), ("features", feats)):
+            arrays[k].append(v)
+    arrays = {k: np.concatenate(v) for k, v in arrays.items()}
+    decoder = None
+    if kind == "full":
+        w1 = 0.6 * rng.standard_normal((6, 12))
+        w2 = 0.4 * rng.standard_normal((3, 6))
+        decoder = mlp_to_onnx([w1.astype(np.float32), w2.astype(np.float32)])
+    seg = Segment(0, num_frames, decoder=decoder, activation="sigmoid", **arrays)
+    return Model(kind, fps, [seg], cameras=demo_rig(), bounds=((-4.0, -3.0, 0.5), (4.0, 3.0, 8.1)),
+                 provenance={"tool": "stg_runtime.demo", "settings": {"seed": seed}})
+
+
+def random_segment(num_gaussians: int, kind: str = "lite", seed: int = 0, num_frames: int = 50,
+                   fov_deg: float = 60.0, aspect: float = 16 / 9) -> Segment:
+    """A plausible random scene for benchmarks, seen by a camera at the origin looking down +z:
+    Gaussians spread through the frustum at depth 2..10, a few to tens of pixels wide at 640x360,
+    opacity 0.1..0.9, random rotations, small cubic motion and a spread of temporal centres."""
+    rng = np.random.default_rng(seed)
+    n = num_gaussians
+    z = rng.uniform(2, 10, n)
+    tx = np.tan(np.radians(fov_deg) / 2)
+    x = rng.uniform(-1, 1, n) * tx * z
+    y = rng.uniform(-1, 1, n) * tx / aspect * z
+    position = np.zeros((n, 4, 3))
+    position[:, 0] = np.stack([x, y, z], 1)
+    position[:, 1:] = 0.05 * rng.standard_normal((n, 3, 3))
+    rotation = np.zeros((n, 2, 4))
+    rotation[:, 0] = rng.standard_normal((n, 4))
+    rotation[:, 1] = 0.2 * rng.standard_normal((n, 4))
+    px = 320 / tx  # focal length in pixels at 640 wide
+    scale = np.exp(rng.uniform(np.log(0.5), np.log(8), (n, 3))) * z[:, None] / px
+    channels = 9 if kind == "full" else 3
+    features = rng.uniform(0, 1, (n, channels))
+    decoder = None
+    if kind == "full":
+        decoder = mlp_to_onnx([rng.standard_normal((6, 12)).astype(np.float32) * 0.3,
+                               rng.standard_normal((3, 6)).astype(np.float32) * 0.3])
+    return Segment(0, num_frames, opacity=rng.uniform(0.1, 0.9, n), t_center=rng.uniform(0, 1, n),
+                   t_scale=rng.uniform(0, 4, n), position=position, rotation=rotation, scale=scale,
+                   features=features, decoder=decoder, activation="sigmoid")
+
+
+def random_model(num_gaussians: int, kind: str = "lite", seed: int = 0, width: int = 640, height: int = 360,
+                 fps: float = 30.0) -> Model:
+    """random_segment wrapped in a Model whose one camera is the benchmark camera (60 deg horizontal fov)."""
+    f = 0.5 * width / np.tan(np.radians(30.0))
+    cam = Camera(f, f, width / 2, height / 2, width, height, np.eye(4), name="bench")
+    return Model(kind, fps, [random_segment(num_gaussians, kind, seed, aspect=width / height)], cameras=[cam])

@@ -1,0 +1,157 @@
+"""`Player`: open a `.stg` model and render it from any camera at any time."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import NamedTuple, Sequence
+
+import numpy as np
+
+from . import format as stg_format
+from .camera import Camera
+from .decoder import Decoder, lite_colour
+from .model import Model, Segment
+from .progress import Progress
+from .splat_cpu import rasterize
+from .timeeval import evaluate
+from .video import FrameWriter
+
+DEVICES = ("cpu", "cuda", "auto")
+
+
+class Rendered(NamedTuple):
+    """One render: rgb (H, W, 3) in [0, 1]; features (H, W, C) splatted; alpha (H, W); depth (H, W)
+    expected depth along the camera's z axis (0 where alpha is 0). All float32."""
+
+    rgb: np.ndarray
+    features: np.ndarray
+    alpha: np.ndarray
+    depth: np.ndarray
+
+
+def _resolve_device(device: str) -> str:
+    if device not in DEVICES:
+        raise ValueError(f"device must be one of {DEVICES}, got {device!r}")
+    if device == "cuda":
+        raise ValueError("device 'cuda': this version of stg_runtime renders on the CPU only; "
+                         "use device='cpu' or 'auto'")
+    return "cpu"
+
+
+class Player:
+    """Plays a Spacetime Gaussian model.
+
+    source: path of a `.stg` file, or a `Model`. device: "cpu", or "auto" (the best available).
+    Times are in seconds of the video (frame k is shown at k / fps).
+    """
+
+    def __init__(self, source: str | Path | Model, device: str = "auto"):
+        self.device = _resolve_device(device)
+        self.model = source if isinstance(source, Model) else stg_format.load(source)
+        self._decoders: dict[int, Decoder] = {}
+
+    # -- what the model covers -----------------------------------------------------------------
+    @property
+    def kind(self) -> str:
+        return self.model.kind
+
+    @property
+    def fps(self) -> float:
+        return self.model.fps
+
+    @property
+    def num_frames(self) -> int:
+        return self.model.num_frames
+
+    @property
+    def start_time(self) -> float:
+        """Seconds at which the model's first frame is shown (0 unless it starts mid-video)."""
+        return self.model.start_frame / self.model.fps
+
+    @property
+    def duration(self) -> float:
+        """Seconds covered by the model."""
+        return self.model.duration
+
+    @property
+    def cameras(self) -> list[Camera]:
+        """The cameras the model was trained with."""
+        return list(self.model.cameras)
+
+    def frame_times(self) -> np.ndarray:
+        """(num_frames,) seconds at which each frame of the model is shown."""
+        return (self.model.start_frame + np.arange(self.num_frames)) / self.fps
+
+    # -- rendering -------------------------------------------------------------------------------
+    def render(self, camera: Camera, t: float) -> np.ndarray:
+        """(H, W, 3) float32 rgb in [0, 1] seen by `camera` at time `t` seconds."""
+        return self.render_all(camera, t).rgb
+
+    def render_frame(self, camera: Camera, frame: int) -> np.ndarray:
+        """Like render, at the time of frame index `frame` of the video."""
+        return self.render(camera, frame / self.fps)
+
+    def render_all(self, camera: Camera, t: float) -> Rendered:
+        """rgb plus the splatted features, alpha and depth."""
+        end = self.start_time + self.duration
+        if not (self.start_time - 1e-9 <= t <= end + 1e-9):
+            raise ValueError(f"t = {t} s is outside the model's time span [{self.start_time}, {end}] s")
+        segment, tau = self.model.segment_at(t)
+        g = evaluate(segment, tau)
+        features, alpha, depth = rasterize(g.means, g.quats, g.scales, g.opacities, g.features, camera)
+        if self.model.kind == "lite":
+            rgb = lite_colour(features)
+        else:
+            rgb = self._decoder(segment)(features, camera)
+        return Rendered(np.ascontiguousarray(rgb, dtype=np.float32), features, alpha, depth)
+
+    def _decoder(self, segment: Segment) -> Decoder:
+        key = id(segment)
+        if key not in self._decoders:
+            self._decoders[key] = Decoder(segment.decoder, segment.activation)
+        return self._decoders[key]
+
+    def render_video(self, path, cameras: Camera | Sequence[Camera] | str | Path, times=None,
+                     fps: float | None = None, progress: bool = True) -> int:
+        """Render a video (.mp4 etc., needs OpenCV) or a folder of PNG frames; returns the frame count.
+
+        cameras: one Camera (fixed view), one Camera per output frame, or the path of a camera-path JSON
+        file (a list of camera objects as in formats/stg-v1.md). times: seconds of each output frame
+        (default: every frame of the model). fps: of the output file (default: the model's).
+        """
+        if isinstance(cameras, (str, Path)):
+            cameras = load_camera_path(cameras)
+        if isinstance(cameras, Camera):
+            cameras = [cameras]
+        cameras = list(cameras)
+        times = self.frame_times() if times is None else np.asarray(times, dtype=np.float64)
+        if len(cameras) == 1:
+            cameras = cameras * len(times)
+        if len(cameras) != len(times):
+            raise ValueError(f"{len(cameras)} cameras for {len(times)} frames: give one camera, or one per frame")
+        sizes = {(c.width, c.height) for c in cameras}
+        if len(sizes) != 1:
+            raise ValueError(f"all cameras of a video must have one image size, got {sorted(sizes)}")
+        (width, height), = sizes
+        writer = FrameWriter(path, fps or self.fps, width, height)
+        ok = False
+        try:
+            for camera, t in Progress(list(zip(cameras, times)), desc="render", enabled=progress):
+                writer.write(self.render(camera, float(t)))
+            ok = True
+        finally:
+            writer.close(ok)
+        return writer.count
+
+
+def load_camera_path(path) -> list[Camera]:
+    """Cameras from a JSON file holding a list of camera objects (formats/stg-v1.md, section 4)."""
+    try:
+        data = json.loads(Path(path).read_text())
+        return [Camera.from_dict(d) for d in data]
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ValueError(f"{path}: not a readable camera path ({e})") from None
+
+
+def save_camera_path(path, cameras: Sequence[Camera]) -> None:
+    Path(path).write_text(json.dumps([c.to_dict() for c in cameras], indent=1))

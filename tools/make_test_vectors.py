@@ -1,0 +1,91 @@
+#!/usr/bin/env python
+"""Regenerate the test vectors in formats/vectors/: tiny .stg files and their expected renders.
+
+The expected renders come from the float64 reference path (timeeval.evaluate_reference,
+splat_reference.rasterize_reference and a numpy decoder), not from the Player, so a player is checked
+against an independent transcription of formats/stg-v1.md. Usage: python tools/make_test_vectors.py
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from stg_runtime import Camera, Model, Segment
+from stg_runtime import format as stg_format
+from stg_runtime.onnx_mlp import mlp_to_onnx
+from stg_runtime.splat_reference import rasterize_reference
+from stg_runtime.timeeval import evaluate_reference
+
+OUT = Path(__file__).resolve().parent.parent / "formats" / "vectors"
+FPS = 10.0
+
+
+def _camera() -> Camera:
+    return Camera.look_at([0.2, -0.1, 0.0], [0, 0, 4], [0, -1, 0], 55.0, 48, 32, name="cam00")
+
+
+def _segment(rng, start, frames, kind, weights=None) -> Segment:
+    n = 40
+    position = np.zeros((n, 4, 3))
+    position[:, 0] = np.stack([rng.uniform(-1.5, 1.5, n), rng.uniform(-1, 1, n), rng.uniform(3, 5, n)], 1)
+    position[:, 1:] = 0.3 * rng.standard_normal((n, 3, 3))
+    rotation = np.concatenate([rng.standard_normal((n, 1, 4)), 0.5 * rng.standard_normal((n, 1, 4))], 1)
+    channels = 9 if kind == "full" else 3
+    features = rng.uniform(0, 1, (n, channels)) if kind == "lite" else rng.standard_normal((n, channels))
+    return Segment(start, frames, opacity=rng.uniform(0.2, 1.0, n), t_center=rng.uniform(0, 1, n),
+                   t_scale=rng.uniform(0, 6, n), position=position, rotation=rotation,
+                   scale=rng.uniform(0.05, 0.4, (n, 3)), features=features,
+                   decoder=None if weights is None else mlp_to_onnx(weights), activation="sigmoid")
+
+
+def _numpy_decoder(features, camera, weights, activation):
+    h, w, c = features.shape
+    x = np.concatenate([features.reshape(-1, c)[:, 3:], np.broadcast_to(camera.center, (h * w, 3)),
+                        camera.ray_directions().reshape(-1, 3)], 1)
+    for k, wk in enumerate(weights):
+        x = x @ wk.astype(np.float64).T
+        x = np.maximum(x, 0) if k < len(weights) - 1 else x
+    rgb = features.reshape(-1, c)[:, :3] + x
+    rgb = 1 / (1 + np.exp(-rgb)) if activation == "sigmoid" else rgb
+    return np.clip(rgb, 0, 1).reshape(h, w, 3)
+
+
+def expected_render(model: Model, camera: Camera, t: float, weights) -> np.ndarray:
+    """(H, W, 3) float64 render of `model` at t seconds by the reference path."""
+    seg, tau = model.segment_at(t)
+    g = evaluate_reference(seg, tau)
+    feats, _, _ = rasterize_reference(g["means"], g["quats"], g["scales"], g["opacities"], g["features"], camera)
+    if model.kind == "lite":
+        return np.clip(feats[..., :3], 0, 1)
+    return _numpy_decoder(feats, camera, weights, seg.activation)
+
+
+def main() -> None:
+    rng = np.random.default_rng(2024)
+    cam = _camera()
+    weights = [0.5 * rng.standard_normal((6, 12)).astype(np.float32), 0.5 * rng.standard_normal((3, 6)).astype(np.float32)]
+    lite = Model("lite", FPS, [_segment(rng, 0, 5, "lite"), _segment(rng, 5, 5, "lite")], cameras=[cam],
+                 bounds=((-2, -2, 2), (2, 2, 6)), provenance={"tool": "tools/make_test_vectors.py"})
+    full = Model("full", FPS, [_segment(rng, 0, 10, "full", weights)], cameras=[cam],
+                 bounds=((-2, -2, 2), (2, 2, 6)), provenance={"tool": "tools/make_test_vectors.py"})
+    quantized = {"position": "f16", "rotation": "u16", "scale": "u16", "features": "u8", "opacity": "u8",
+                 "t_center": "u16", "t_scale": "f16"}
+    vectors = [("lite", lite, {}), ("full", full, {}), ("full_quantized", full, quantized)]
+    times = [0.0, 0.25, 0.62, 0.95]
+    index = {}
+    for name, model, encodings in vectors:
+        path = OUT / f"{name}.stg"
+        stg_format.save(model, path, encodings=encodings)
+        stored = stg_format.load(path)  # render what the file holds (quantized values included)
+        renders = np.stack([expected_render(stored, cam, t, weights) for t in times]).astype(np.float32)
+        np.savez_compressed(OUT / f"{name}.expected.npz", times=np.array(times), camera=np.array(0), rgb=renders)
+        index[name] = {"file": path.name, "encodings": encodings or "f32", "segments": len(model.segments),
+                       "expected": f"{name}.expected.npz"}
+        print(f"{path.name}: {path.stat().st_size} bytes, {len(times)} expected renders")
+    (OUT / "index.json").write_text(json.dumps(index, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
