@@ -1,0 +1,168 @@
+"""Reference splatter: a slow, float64 numpy transcription of formats/stg-v1.md, section 3.
+
+It exists to be obviously the spec, not to be fast: every Gaussian is projected with whole-array numpy,
+then the Gaussians are composited one at a time, in (depth, index) order, over every pixel centre of
+the image at once. Use it for tests and for checking other splatters (stg_runtime.splat_cpu).
+
+Inputs (any float dtype, converted to float64):
+    means (M, 3) world positions; quats (M, 4) wxyz, normalised here (a zero quaternion is the
+    identity); scales (M, 3) standard deviations along the local axes (world units); opacities (M,)
+    in [0, 1]; features (M, C), any C >= 1; camera: stg_runtime.camera.Camera.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from .camera import Camera
+
+#: The constants of formats/stg-v1.md, section 3.
+NEAR = 0.01
+JACOBIAN_CLAMP = 1.3
+BLUR = 0.3
+MIN_ALPHA = 1.0 / 255.0
+MAX_ALPHA = 0.99
+T_STOP = 1e-4
+
+
+class Projection(NamedTuple):
+    """Per-Gaussian screen-space footprint, float64 (M = number of input Gaussians).
+
+    visible (M,) bool: passed the near-plane and determinant culls (opacity is not looked at here);
+    mean2d (M, 2) pixels (unclamped pinhole projection u, v); cov2d (M, 3) the 2D covariance
+    [a, b, c] = [[a, b], [b, c]] including the blur (pixels^2); conic (M, 3) [A, B, C] its inverse;
+    radius (M,) pixels (ceil of 3 sigma, an integer-valued float); depth (M,) camera-space z.
+    Entries of culled Gaussians are 0 (conic, radius) or whatever the formulas gave (the rest).
+    """
+
+    visible: np.ndarray
+    mean2d: np.ndarray
+    cov2d: np.ndarray
+    conic: np.ndarray
+    radius: np.ndarray
+    depth: np.ndarray
+
+
+def quat_to_rotmat(quats: np.ndarray) -> np.ndarray:
+    """(M, 4) wxyz quaternions (any length; zero -> identity) -> (M, 3, 3) rotation matrices."""
+    q = np.asarray(quats, dtype=np.float64)
+    norm = np.linalg.norm(q, axis=1, keepdims=True)
+    q = np.where(norm > 0, q / np.where(norm > 0, norm, 1.0), np.array([1.0, 0.0, 0.0, 0.0]))
+    w, x, y, z = q.T
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], axis=-1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], axis=-1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=-1),
+    ], axis=1)
+
+
+def project_reference(means, quats, scales, camera: Camera) -> Projection:
+    """Project every Gaussian to the image (EWA splatting, spec section 3). See Projection."""
+    means = np.asarray(means, dtype=np.float64).reshape(-1, 3)
+    scales = np.asarray(scales, dtype=np.float64).reshape(-1, 3)
+    W, H = camera.width, camera.height
+    fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
+
+    # Camera space and the near plane.
+    p_cam = means @ camera.R.T + camera.t
+    x, y, z = p_cam.T
+    in_front = z > NEAR
+    zs = np.where(in_front, z, 1.0)  # avoid dividing by zero for culled Gaussians
+
+    # 2D mean: the unclamped pinhole projection.
+    mean2d = np.stack([fx * x / zs + cx, fy * y / zs + cy], axis=1)
+
+    # 3D covariance R S S^T R^T, rotated to camera space: W Sigma W^T.
+    Rg = quat_to_rotmat(quats)
+    M = Rg * scales[:, None, :]  # R S
+    sigma = M @ M.transpose(0, 2, 1)
+    sigma_cam = camera.R @ sigma @ camera.R.T
+
+    # EWA Jacobian with x/z, y/z clamped to 1.3 x the half field of view (spec, "Jacobian clamp").
+    tan_x, tan_y = W / (2 * fx), H / (2 * fy)
+    xz = np.clip(x / zs, -(cx / fx + 0.3 * tan_x), (W - cx) / fx + 0.3 * tan_x)
+    yz = np.clip(y / zs, -(cy / fy + 0.3 * tan_y), (H - cy) / fy + 0.3 * tan_y)
+    J = np.zeros((len(z), 2, 3))
+    J[:, 0, 0] = fx / zs
+    J[:, 0, 2] = -fx * xz / zs
+    J[:, 1, 1] = fy / zs
+    J[:, 1, 2] = -fy * yz / zs
+    cov = J @ sigma_cam @ J.transpose(0, 2, 1)
+    a = cov[:, 0, 0] + BLUR
+    b = cov[:, 0, 1]
+    c = cov[:, 1, 1] + BLUR
+
+    det = a * c - b * b
+    visible = in_front & (det > 0)
+    dets = np.where(visible, det, 1.0)
+    conic = np.where(visible[:, None], np.stack([c / dets, -b / dets, a / dets], axis=1), 0.0)
+    m = 0.5 * (a + c)
+    lam_max = m + np.sqrt(np.maximum(0.1, m * m - det))
+    radius = np.where(visible, np.ceil(3.0 * np.sqrt(np.where(visible, lam_max, 0.0))), 0.0)
+    return Projection(visible, mean2d, np.stack([a, b, c], axis=1), conic, radius, z)
+
+
+def rasterize_reference(means, quats, scales, opacities, features, camera: Camera, *, margins=None):
+    """Render M Gaussians with the spec's rules, in float64.
+
+    Returns (features (H, W, C), alpha (H, W), depth (H, W)), float64: F = sum w_i f_i,
+    alpha = 1 - T_final, depth = sum w_i z_i / alpha (0 where alpha == 0).
+
+    margins: optionally a dict, filled with how close the render came to a threshold, over the
+    decisions it took (pixels not yet stopped, inside a footprint), so that tests can tell whether a
+    lower-precision splatter can be expected to take the same decisions: "footprint" min ||p - mu| - r|
+    (pixels), "power" min |power| (the power < 0 skip), "alpha" min |alpha * 255 - 1| (the 1/255
+    floor, relative), "stop" min |T (1 - alpha) / 1e-4 - 1| (the transmittance stop, relative).
+    """
+    proj = project_reference(means, quats, scales, camera)
+    opacities = np.asarray(opacities, dtype=np.float64).reshape(-1)
+    features = np.asarray(features, dtype=np.float64)
+    features = features.reshape(len(opacities), features.shape[-1] if features.ndim == 2 else -1)
+    H, W, C = camera.height, camera.width, features.shape[1]
+
+    px = (np.arange(W) + 0.5)[None, :]  # pixel centres (1, W)
+    py = (np.arange(H) + 0.5)[:, None]  # (H, 1)
+    T = np.ones((H, W))
+    stopped = np.zeros((H, W), dtype=bool)
+    F = np.zeros((H, W, C))
+    D = np.zeros((H, W))
+
+    if margins is not None:
+        margins.update(footprint=np.inf, power=np.inf, alpha=np.inf, stop=np.inf)
+    # Increasing z, ties: lower index first (a stable sort on z).
+    order = np.argsort(proj.depth, kind="stable")
+    for i in order:
+        if not proj.visible[i] or opacities[i] < MIN_ALPHA:
+            continue
+        mx, my = proj.mean2d[i]
+        r = proj.radius[i]
+        A, B, Cc = proj.conic[i]
+        dx = px - mx
+        dy = py - my
+        footprint = (np.abs(dx) <= r) & (np.abs(dy) <= r)
+        power = 0.5 * (A * dx * dx + Cc * dy * dy) + B * dx * dy
+        alpha = np.minimum(MAX_ALPHA, opacities[i] * np.exp(-power))
+        take = footprint & (power >= 0) & (alpha >= MIN_ALPHA) & ~stopped
+        t_next = T * (1.0 - alpha)
+        stop = take & (t_next < T_STOP)
+        if margins is not None:
+            live = ~stopped & (np.abs(dx) <= r + 1) & (np.abs(dy) <= r + 1)
+            edge = np.minimum(np.abs(np.abs(dx) - r) + 0 * dy, np.abs(np.abs(dy) - r) + 0 * dx)
+            for key, values, where in (
+                    ("footprint", edge, live),
+                    ("power", np.abs(power), footprint & live),
+                    ("alpha", np.abs(alpha / MIN_ALPHA - 1), footprint & live & (power >= 0)),
+                    ("stop", np.abs(t_next / T_STOP - 1), take)):
+                if where.any():
+                    margins[key] = min(margins[key], float(values[where].min()))
+        stopped |= stop
+        add = take & ~stop
+        w = np.where(add, alpha * T, 0.0)
+        F += w[:, :, None] * features[i]
+        D += w * proj.depth[i]
+        T = np.where(add, t_next, T)
+
+    alpha = 1.0 - T
+    depth = np.where(alpha > 0, D / np.where(alpha > 0, alpha, 1.0), 0.0)
+    return F, alpha, depth
