@@ -110,24 +110,27 @@ def demo_model(kind: str = "full", fps: float = 30.0, num_frames: int = 60, seed
 
 
 def random_segment(num_gaussians: int, kind: str = "lite", seed: int = 0, num_frames: int = 50,
-                   fov_deg: float = 60.0, aspect: float = 16 / 9) -> Segment:
-    """A plausible random scene for benchmarks, seen by a camera at the origin looking down +z:
-    Gaussians spread through the frustum at depth 2..10, a few to tens of pixels wide at 640x360,
-    opacity 0.1..0.9, random rotations, small cubic motion and a spread of temporal centres."""
+                   width: int = 640, height: int = 360, radius_px=(0.5, 10.0)) -> Segment:
+    """A plausible random scene for benchmarks, seen by `bench_camera(width, height)` (at the origin,
+    looking down +z, 60 degree horizontal field of view): Gaussians uniform in the volume of the frustum
+    between depths 2 and 10, each with a projected 3-sigma radius log-uniform in `radius_px` pixels times
+    a per-axis anisotropy in [0.5, 2], opacity uniform in [0.1, 0.9], random rotations, features uniform
+    in [0, 1]. Over the clip they move a little (cubic motion, rotation velocity) and their temporal
+    opacity varies mildly (t_scale <= 4), so almost all are visible at any time."""
     rng = np.random.default_rng(seed)
     n = num_gaussians
-    z = rng.uniform(2, 10, n)
-    tx = np.tan(np.radians(fov_deg) / 2)
-    x = rng.uniform(-1, 1, n) * tx * z
-    y = rng.uniform(-1, 1, n) * tx / aspect * z
+    fx = bench_camera(width, height).fx
+    z = np.cbrt(rng.uniform(2.0 ** 3, 10.0 ** 3, n))  # uniform in volume: density ~ z^2
+    x = rng.uniform(-1, 1, n) * z * (width / 2) / fx
+    y = rng.uniform(-1, 1, n) * z * (height / 2) / fx
+    sigma_px = np.exp(rng.uniform(np.log(radius_px[0]), np.log(radius_px[1]), n)) / 3.0
+    scale = (sigma_px * z / fx)[:, None] * np.exp(rng.uniform(np.log(0.5), np.log(2.0), (n, 3)))
     position = np.zeros((n, 4, 3))
     position[:, 0] = np.stack([x, y, z], 1)
     position[:, 1:] = 0.05 * rng.standard_normal((n, 3, 3))
     rotation = np.zeros((n, 2, 4))
     rotation[:, 0] = rng.standard_normal((n, 4))
     rotation[:, 1] = 0.2 * rng.standard_normal((n, 4))
-    px = 320 / tx  # focal length in pixels at 640 wide
-    scale = np.exp(rng.uniform(np.log(0.5), np.log(8), (n, 3))) * z[:, None] / px
     channels = 9 if kind == "full" else 3
     features = rng.uniform(0, 1, (n, channels))
     decoder = None
@@ -139,9 +142,14 @@ def random_segment(num_gaussians: int, kind: str = "lite", seed: int = 0, num_fr
                    features=features, decoder=decoder, activation="sigmoid")
 
 
-def random_model(num_gaussians: int, kind: str = "lite", seed: int = 0, width: int = 640, height: int = 360,
-                 fps: float = 30.0) -> Model:
-    """random_segment wrapped in a Model whose one camera is the benchmark camera (60 deg horizontal fov)."""
+def bench_camera(width: int = 640, height: int = 360) -> Camera:
+    """The benchmark camera: at the origin looking down +z, 60 degree horizontal field of view."""
     f = 0.5 * width / np.tan(np.radians(30.0))
-    cam = Camera(f, f, width / 2, height / 2, width, height, np.eye(4), name="bench")
-    return Model(kind, fps, [random_segment(num_gaussians, kind, seed, aspect=width / height)], cameras=[cam])
+    return Camera(f, f, width / 2, height / 2, width, height, np.eye(4), name="bench")
+
+
+def random_model(num_gaussians: int, kind: str = "lite", seed: int = 0, width: int = 640, height: int = 360,
+                 fps: float = 30.0, radius_px=(0.5, 10.0)) -> Model:
+    """random_segment wrapped in a Model whose one camera is bench_camera(width, height)."""
+    seg = random_segment(num_gaussians, kind, seed, width=width, height=height, radius_px=radius_px)
+    return Model(kind, fps, [seg], cameras=[bench_camera(width, height)])
