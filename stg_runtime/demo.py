@@ -38,7 +38,7 @@ def demo_rig(width: int = 320, height: int = 240, rows: int = 3, cols: int = 3) 
 
 def demo_model(kind: str = "full", fps: float = 30.0, num_frames: int = 60, seed: int = 0) -> Model:
     """A small dynamic scene: a patterned back wall, an orbiting ring of coloured blobs (cubic motion
-    fitted to a circle), a spinning bar (polynomial rotation) and a ball that fades in and out
+    fitted to a circle), a propeller (polynomial rotation) and a ball that fades in and out
     (temporal opacity). The full model adds a view-dependent tint through its decoder."""
     rng = np.random.default_rng(seed)
     parts = []
@@ -65,12 +65,14 @@ def demo_model(kind: str = "full", fps: float = 30.0, num_frames: int = 60, seed
     parts.append(dict(pos=None, coeffs=_fit_cubic(path, tau, t_c), rgb=rgb,
                       scale=np.full((n, 3), 0.06), opacity=np.full(n, 0.9), t_center=t_c, t_scale=np.zeros(n)))
 
-    # Spinning bar: elongated Gaussians at (0, 0.8, 4) rotating about the z axis, linear quaternion.
-    n = 24
-    off = np.linspace(-0.6, 0.6, n)
-    parts.append(dict(pos=np.stack([off, np.full(n, 0.8), np.full(n, 4.0)], 1), rgb=np.tile([0.95, 0.85, 0.2], (n, 1)),
-                      scale=np.tile([0.08, 0.02, 0.02], (n, 1)), opacity=np.full(n, 0.9), t_center=np.full(n, 0.5),
-                      t_scale=np.zeros(n), spin=True))
+    # Propeller: three long Gaussians sharing a centre at (0, 0.9, 4), turning about the z axis through
+    # their linear quaternions q(d) = c0 + c1 d (c1 is the tangent of a turn about z; spec: normalised).
+    half = np.radians([0.0, 60.0, 120.0]) / 2
+    c0 = np.stack([np.cos(half), 0 * half, 0 * half, np.sin(half)], 1)
+    c1 = 3.0 * np.stack([-np.sin(half), 0 * half, 0 * half, np.cos(half)], 1)
+    parts.append(dict(pos=np.tile([0.0, 0.9, 4.0], (3, 1)), rgb=np.tile([0.95, 0.85, 0.2], (3, 1)),
+                      scale=np.tile([0.35, 0.025, 0.025], (3, 1)), opacity=np.full(3, 0.95),
+                      t_center=np.full(3, 0.5), t_scale=np.zeros(3), rot=np.stack([c0, c1], 1)))
 
     # A ball that fades in and out around the middle of the clip.
     n = 300
@@ -86,10 +88,10 @@ def demo_model(kind: str = "full", fps: float = 30.0, num_frames: int = 60, seed
         if coeffs is None:
             coeffs = np.zeros((n, 4, 3))
             coeffs[:, 0] = p["pos"]
-        rot = np.zeros((n, 2, 4))
-        rot[:, 0, 0] = 1.0
-        if p.get("spin"):
-            rot[:, 1, 3] = 3.0  # q(d) = (1, 0, 0, 3 d): about +-70 degrees over the clip
+        rot = p.get("rot")
+        if rot is None:
+            rot = np.zeros((n, 2, 4))
+            rot[:, 0, 0] = 1.0
         base = np.clip(p["rgb"], 0, 1)
         if kind == "full":
             feats = np.concatenate([_logit(base), 0.5 * rng.standard_normal((n, 3)), 0.5 * rng.standard_normal((n, 3))], 1)
