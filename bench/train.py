@@ -1,0 +1,98 @@
+#!/usr/bin/env python
+"""Training speed and quality on the default synthetic scene (12 cameras x 30 frames, 160x120) on this
+machine: seconds per iteration, training time to reach 25 / 30 dB held-out PSNR, final PSNR (runtime
+Player on the held-out camera, every frame), Gaussian count and file size.
+
+    python bench/train.py [--iterations N] [--eval-every K] [--threads 2] [--model full|lite]
+                          [--data DIR] [--out DIR]
+
+Held-out PSNR is measured every K steps with the trainer's renderer over every frame of cam00; the time
+that takes is excluded from the training time. The scene is generated once into --data.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from stg_train.cli import DEMO_DEFAULTS, DEMO_TRAINING
+from stg_train.data import load_n3v
+from stg_train.export import export_trainer
+from stg_train.metrics import evaluate_player
+from stg_train.synthetic import SyntheticScene, write_n3v
+from stg_train.trainer import Trainer, TrainConfig
+from stg_runtime.player import Player
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--iterations", type=int, default=DEMO_TRAINING["iterations"])
+    ap.add_argument("--points", type=int, default=DEMO_TRAINING["num_points"])
+    ap.add_argument("--eval-every", type=int, default=100)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--model", default="full", choices=["full", "lite"])
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--data", default=os.path.join(tempfile.gettempdir(), "stg-bench-scene"))
+    ap.add_argument("--out", default=None, help="where model.stg and bench.json go (default: a temp folder)")
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    d = DEMO_DEFAULTS
+    data = Path(args.data)
+    if not (data / "poses_bounds.npy").exists():
+        write_n3v(data, SyntheticScene(seed=0, duration=d["frames"] / d["fps"]), num_cameras=d["cameras"],
+                  num_frames=d["frames"], fps=d["fps"], width=d["width"], height=d["height"])
+    ds = load_n3v(data, prefer_png=True)
+    out = Path(args.out or tempfile.mkdtemp(prefix="stg-bench-"))
+    cfg = TrainConfig(**{**DEMO_TRAINING, "iterations": args.iterations, "num_points": args.points,
+                         "model": args.model, "device": args.device})
+    print(f"{platform.processor() or platform.machine()}, torch {torch.__version__}, {args.threads} threads; "
+          f"{ds}; {cfg.model} model, {cfg.iterations} iterations, {cfg.num_points} initial points", flush=True)
+
+    start = time.perf_counter()
+    trainer = Trainer(ds, cfg)
+    init_seconds = time.perf_counter() - start
+    reached: dict[int, float | None] = {25: None, 30: None}
+    curve = []
+
+    def check(t: Trainer) -> None:
+        if t.step % args.eval_every and t.step != cfg.iterations:
+            return
+        psnr = t.heldout_psnr()
+        curve.append({"step": t.step, "seconds": round(t.seconds, 1), "psnr": round(psnr, 2),
+                      "gaussians": t.params.count})
+        for target in reached:
+            if reached[target] is None and psnr >= target:
+                reached[target] = t.seconds
+        print(f"  step {t.step:5d}  {t.seconds:7.1f} s  held-out {psnr:6.2f} dB  {t.params.count} Gaussians",
+              flush=True)
+
+    trainer.train(progress=False, callback=check)
+    report = export_trainer(trainer, out / "model.stg")
+    final = evaluate_player(Player(report.path, device="cpu"), ds)
+    fmt = lambda s: "not reached" if s is None else f"{s:.0f} s"  # noqa: E731
+    rows = [("seconds per iteration", f"{trainer.seconds / trainer.step:.3f}"),
+            ("initialisation", f"{init_seconds:.1f} s"),
+            ("time to 25 dB held-out", fmt(reached[25])),
+            ("time to 30 dB held-out", fmt(reached[30])),
+            ("training time", f"{trainer.seconds:.0f} s"),
+            ("final held-out PSNR (Player)", f"{final['psnr']:.2f} dB"),
+            ("final SSIM / DSSIM1", f"{final['ssim']:.4f} / {final['dssim1']:.4f}"),
+            ("Gaussians", str(trainer.params.count)),
+            ("file size", f"{report.bytes / 1e6:.2f} MB"),
+            ("export check max |diff|", f"{report.diff.max_abs:.2e}"),
+            ("render FPS (Player, CPU)", f"{final['fps']:.1f}")]
+    width = max(len(k) for k, _ in rows)
+    print("\n".join(f"{k:<{width}}  {v}" for k, v in rows))
+    (out / "bench.json").write_text(json.dumps({"rows": dict(rows), "curve": curve}, indent=1))
+    print(f"model and bench.json in {out}", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,149 @@
+"""Trained parameters -> stg_runtime Model -> `.stg` file, checked against the runtime right away.
+
+The per-Gaussian attributes come from stg_train.timeeval.to_file_arrays (raw -> file parameters), the
+decoder from stg_runtime.onnx_mlp.mlp_to_onnx, the file from stg_runtime.format.save. `export` then
+renders the held-out view with the trainer's torch splatter and with the runtime `Player` reading the
+written file, and raises ExportMismatch when the rgb images differ by more than the golden tolerance.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import NamedTuple
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import stg_runtime
+from stg_runtime import format as stg_format
+from stg_runtime.camera import Camera
+from stg_runtime.model import Model, Segment
+from stg_runtime.onnx_mlp import mlp_to_onnx
+from stg_runtime.player import Player
+
+from . import timeeval
+from .params import STGParams
+from .splat import rasterize
+
+#: The project's golden-image tolerance between two renders of one model (trainer vs runtime): rgb
+#: values may differ by at most GOLDEN_TOLERANCE, except a fraction GOLDEN_FRACTION of them, which may
+#: differ by up to GOLDEN_MAX: float32 rounding can flip a threshold decision of the splatting rules
+#: (formats/stg-v1.md section 3) at a few pixels, changing them by up to about one 3-sigma-edge contribution.
+GOLDEN_TOLERANCE = 1e-3
+GOLDEN_FRACTION = 1e-3
+GOLDEN_MAX = 2e-2
+
+
+class GoldenDiff(NamedTuple):
+    """max_abs: largest |a - b|; fraction_over: share of values with |a - b| > GOLDEN_TOLERANCE."""
+
+    max_abs: float
+    fraction_over: float
+
+    @property
+    def ok(self) -> bool:
+        return self.max_abs <= GOLDEN_MAX and self.fraction_over <= GOLDEN_FRACTION
+
+    @staticmethod
+    def of(a: np.ndarray, b: np.ndarray) -> "GoldenDiff":
+        diff = np.abs(np.asarray(a, np.float64) - np.asarray(b, np.float64))
+        return GoldenDiff(float(diff.max()), float(np.mean(diff > GOLDEN_TOLERANCE)))
+
+    def worst(self, other: "GoldenDiff") -> "GoldenDiff":
+        return GoldenDiff(max(self.max_abs, other.max_abs), max(self.fraction_over, other.fraction_over))
+
+
+class ExportMismatch(RuntimeError):
+    """The runtime's render of the exported file disagrees with the trainer's render."""
+
+
+@dataclass
+class ExportReport:
+    """path of the .stg file; bytes: its size; diff: the worst GoldenDiff of trainer vs runtime rgb over
+    the checked views (None when not checked); checked: (camera name, frame) pairs compared."""
+
+    path: Path
+    bytes: int
+    diff: GoldenDiff | None
+    checked: list
+
+
+def to_model(params: STGParams, cameras: list[Camera], fps: float, num_frames: int, bounds=None,
+             provenance: dict | None = None, start_frame: int = 0) -> Model:
+    """A one-segment runtime Model of `params` covering frames [start_frame, start_frame + num_frames).
+
+    bounds: ((3,), (3,)) world box; default: the box of the Gaussians' centres. provenance: stored as is
+    (tool, version, settings)."""
+    arrays = timeeval.to_file_arrays(params.raw)
+    decoder = None if params.decoder is None else mlp_to_onnx(params.decoder.weights())
+    segment = Segment(start_frame, num_frames, decoder=decoder, activation="sigmoid", **arrays)
+    if bounds is None:
+        xyz = arrays["position"][:, 0]
+        bounds = (xyz.min(0).tolist(), xyz.max(0).tolist()) if len(xyz) else ([0.0] * 3, [0.0] * 3)
+    return Model(params.kind, fps, [segment], cameras=list(cameras), bounds=bounds,
+                 provenance=dict(provenance or {}))
+
+
+def provenance(settings: dict, **extra) -> dict:
+    """{"tool": "stg-train", "version": ..., "settings": settings, **extra} for the file header."""
+    return {"tool": "stg-train", "version": stg_runtime.__version__, "settings": settings, **extra}
+
+
+@torch.no_grad()
+def trainer_render(params: STGParams, camera: Camera, tau: float) -> np.ndarray:
+    """(H, W, 3) float32 rgb of `params` through the trainer's torch splatter (no gradient)."""
+    g = params.at(tau)
+    out = rasterize(g.means, g.quats, g.scales, g.opacities, g.features, camera)
+    return params.colour(out.features, camera).clamp(0, 1).float().cpu().numpy()
+
+
+def compare_with_runtime(params: STGParams, player: Player, cameras: list[Camera], frames) -> GoldenDiff:
+    """The worst GoldenDiff of trainer rgb vs runtime rgb over every camera x frame (frame j at
+    t = start + j / fps)."""
+    worst = GoldenDiff(0.0, 0.0)
+    seg = player.model.segments[0]
+    for cam in cameras:
+        for j in frames:
+            ours = trainer_render(params, cam, j / seg.num_frames)
+            theirs = player.render(cam, (seg.start_frame + j) / player.fps)
+            worst = worst.worst(GoldenDiff.of(ours, theirs))
+    return worst
+
+
+def export(params: STGParams, path, cameras: list[Camera], fps: float, num_frames: int,
+           check_cameras: list[Camera] | None = None, check_frames=None, bounds=None,
+           provenance: dict | None = None) -> ExportReport:
+    """Write `params` to `path` (.stg, float32 attributes), then compare the trainer's and the runtime's
+    renders of check_cameras (default: none) at check_frames (default: first, middle and last frame).
+    Raises ExportMismatch (the file stays, for inspection) when they differ beyond the golden tolerance."""
+    path = Path(path)
+    if path.parent and not path.parent.exists():
+        os.makedirs(path.parent, exist_ok=True)
+    model = to_model(params, cameras, fps, num_frames, bounds, provenance)
+    stg_format.save(model, path)
+    size = path.stat().st_size
+    if not check_cameras:
+        return ExportReport(path, size, None, [])
+    frames = sorted({0, num_frames // 2, num_frames - 1}) if check_frames is None else list(check_frames)
+    worst = compare_with_runtime(params, Player(path, device="cpu"), check_cameras, frames)
+    checked = [(c.name, j) for c in check_cameras for j in frames]
+    if not worst.ok:
+        raise ExportMismatch(f"{path}: the runtime's render differs from the trainer's (max abs rgb "
+                             f"{worst.max_abs:.3g}, {100 * worst.fraction_over:.3g}% of values over "
+                             f"{GOLDEN_TOLERANCE:g}, over {checked}) beyond the golden tolerance (at most "
+                             f"{100 * GOLDEN_FRACTION:g}% over {GOLDEN_TOLERANCE:g}, none over {GOLDEN_MAX:g})")
+    return ExportReport(path, size, worst, checked)
+
+
+def export_trainer(trainer, path, check: bool = True) -> ExportReport:
+    """Export a stg_train.trainer.Trainer's current parameters with its dataset's cameras, fps, frame
+    count and bounds, checked on the dataset's held-out cameras (when `check`)."""
+    from dataclasses import asdict
+
+    ds = trainer.dataset
+    prov = provenance(asdict(trainer.config), iterations=trainer.step, train_seconds=round(trainer.seconds, 3),
+                      data=None if ds.path is None else str(ds.path))
+    check_cameras = [ds.cameras[i] for i in ds.test_cameras] if check else None
+    return export(trainer.params, path, ds.cameras, ds.fps, ds.num_frames, check_cameras=check_cameras,
+                  bounds=ds.scene_bounds, provenance=prov)

@@ -1,0 +1,64 @@
+"""Image quality metrics for evaluation (numpy / scikit-image), as the paper's Sec. 6.1 defines them.
+
+Images are float arrays (H, W, 3) with values in [0, 1]. The training loss has its own differentiable
+SSIM (stg_train.trainer.ssim); these are the reported figures.
+"""
+from __future__ import annotations
+
+import numpy as np
+from skimage.metrics import structural_similarity
+
+
+def psnr(image: np.ndarray, reference: np.ndarray) -> float:
+    """Peak signal-to-noise ratio in dB for images in [0, 1] (peak 1); inf for identical images."""
+    mse = float(np.mean((np.asarray(image, np.float64) - np.asarray(reference, np.float64)) ** 2))
+    return float("inf") if mse == 0 else -10.0 * np.log10(mse)
+
+
+def ssim(image: np.ndarray, reference: np.ndarray, data_range: float = 1.0) -> float:
+    """scikit-image's structural_similarity over the colour channels (its default 7x7 uniform window)."""
+    return float(structural_similarity(np.asarray(image, np.float64), np.asarray(reference, np.float64),
+                                       channel_axis=-1, data_range=data_range))
+
+
+def dssim1(image: np.ndarray, reference: np.ndarray) -> float:
+    """(1 - SSIM) / 2 with data_range = 1 (the paper's DSSIM_1)."""
+    return (1.0 - ssim(image, reference, 1.0)) / 2.0
+
+
+def dssim2(image: np.ndarray, reference: np.ndarray) -> float:
+    """(1 - SSIM) / 2 with data_range = 2 (the paper's DSSIM_2)."""
+    return (1.0 - ssim(image, reference, 2.0)) / 2.0
+
+
+def image_metrics(image: np.ndarray, reference: np.ndarray) -> dict[str, float]:
+    """All per-image figures: psnr (dB), ssim (data_range 1), dssim1, dssim2."""
+    s1, s2 = ssim(image, reference, 1.0), ssim(image, reference, 2.0)
+    return {"psnr": psnr(image, reference), "ssim": s1, "dssim1": (1 - s1) / 2, "dssim2": (1 - s2) / 2}
+
+
+def evaluate_player(player, dataset, camera_indices=None, frames=None) -> dict:
+    """Render dataset cameras (default: the held-out ones) at every frame (or `frames`) through a
+    stg_runtime Player and compare with the ground truth.
+
+    Returns {"psnr", "ssim", "dssim1", "dssim2"} means over the images, "fps" (images rendered per
+    second of Player.render time, after one warm-up render), "images", "cameras" (names), "per_frame"
+    (list of per-image figures with camera name and frame)."""
+    import time
+
+    cams = dataset.test_cameras if camera_indices is None else list(camera_indices)
+    frames = list(range(dataset.num_frames)) if frames is None else list(frames)
+    if not cams or not frames:
+        raise ValueError("evaluate_player: no camera or no frame to evaluate")
+    player.render(dataset.cameras[cams[0]], player.start_time)  # warm-up (numba, onnxruntime)
+    rows, seconds = [], 0.0
+    for ci in cams:
+        cam = dataset.cameras[ci]
+        for j in frames:
+            start = time.perf_counter()
+            image = player.render(cam, j / dataset.fps)
+            seconds += time.perf_counter() - start
+            rows.append({"camera": cam.name, "frame": j, **image_metrics(image, dataset.image(ci, j))})
+    means = {k: float(np.mean([r[k] for r in rows])) for k in ("psnr", "ssim", "dssim1", "dssim2")}
+    return {**means, "fps": len(rows) / seconds if seconds > 0 else float("inf"), "images": len(rows),
+            "cameras": [dataset.cameras[ci].name for ci in cams], "per_frame": rows}

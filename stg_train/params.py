@@ -1,0 +1,339 @@
+"""The trainable Spacetime Gaussian parameters, raw as the reference implementation stores them.
+
+Per Gaussian (N rows; names and activations are those of stg_train.timeeval, which evaluates them):
+
+| name          | shape      | meaning (raw)                                      | initial value                     |
+|---------------|------------|----------------------------------------------------|-----------------------------------|
+| xyz           | (N, 3)     | position at the temporal centre (world units)      | the initial points                |
+| motion        | (N, 9)     | cubic motion coefficients (per tau, tau^2, tau^3)  | 0                                 |
+| features      | (N, 6 / 3) | base rgb + view feature (full) or rgb (lite)       | point colour (logit for full), 0  |
+| time_features | (N, 3)     | time feature, multiplied by dt (full only)         | 0                                 |
+| log_scale     | (N, 3)     | log standard deviations                            | log sqrt(mean 3-NN sq. distance)  |
+| rotation      | (N, 4)     | quaternion wxyz at the centre (normalised at use)  | (1, 0, 0, 0)                      |
+| omega         | (N, 4)     | rotation velocity (quaternion units per tau)       | 0                                 |
+| opacity_logit | (N, 1)     | logit of the spatial opacity                       | logit(0.1)                        |
+| t_center      | (N, 1)     | temporal centre (normalised time)                  | the point's frame time j / frames |
+| t_scale_raw   | (N, 1)     | opacity(t) ~ exp(-(dt / exp(t_scale_raw))^2)        | 0                                 |
+
+The full model adds the colour decoder (`Decoder`: 12 -> 6, ReLU, 6 -> 3, no biases, per pixel) and
+rgb = sigmoid(F[0:3] + decoder([F[3:9], camera centre, ray direction])); the lite model's rgb is F[0:3]
+clamped to [0, 1] (formats/stg-v1.md, section 2).
+
+A *static* parameter set (`static=True`, the ablation "time terms frozen") keeps motion, omega and the
+time features at 0 and the temporal opacity at 1 (t_scale_raw fixed at STATIC_T_SCALE), untrained.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from stg_runtime.camera import Camera
+
+from . import timeeval
+
+#: Per-Gaussian raw parameters, in a fixed order (optimizer groups follow it); lite models have no
+#: time_features.
+NAMES = timeeval.RAW_KEYS
+#: Parameters that only matter for dynamics: frozen (not trained) in a static model.
+TIME_NAMES = ("motion", "omega", "time_features", "t_center", "t_scale_raw")
+#: Raw temporal scale of static models: exp(-(dt / e^10)^2) = 1 to float32 precision for |dt| <= 1.
+STATIC_T_SCALE = 10.0
+KINDS = ("full", "lite")
+
+
+def base_channels(kind: str) -> int:
+    """Width of `features`: 6 (rgb + view feature) for full models, 3 (rgb) for lite."""
+    return {"full": 6, "lite": 3}[kind]
+
+
+@dataclass
+class LearningRates:
+    """Adam learning rates of the reference implementation (N3V settings) for 30k iterations.
+
+    Lengths scale with the scene extent: xyz decays exponentially from xyz_init to xyz_final (times
+    extent) over the run; motion is xyz_init x extent x motion_factor, constant. The others are constant.
+    """
+
+    xyz_init: float = 1.6e-4
+    xyz_final: float = 1.6e-6
+    motion_factor: float = 0.5 * 3.5
+    features: float = 2.5e-3
+    time_features: float = 1e-3
+    log_scale: float = 5e-3
+    rotation: float = 1e-3
+    omega: float = 1e-4
+    opacity_logit: float = 0.05
+    t_center: float = 1e-4
+    t_scale_raw: float = 0.03
+    decoder: float = 1e-4
+
+    def scaled(self, factor: float) -> "LearningRates":
+        """Every rate times `factor` (short runs take bigger steps)."""
+        return LearningRates(**{k: (v * factor if k != "motion_factor" else v) for k, v in asdict(self).items()})
+
+
+class Decoder(torch.nn.Module):
+    """The full model's colour decoder, applied per pixel: (P, 12) -> (P, 3), 12 -> 6 ReLU -> 3, no biases.
+
+    Weights are initialised like torch's Linear / the reference's 1x1 Conv2d (Kaiming uniform).
+    """
+
+    def __init__(self, in_channels: int = 12, hidden: int = 6):
+        super().__init__()
+        self.layer1 = torch.nn.Linear(in_channels, hidden, bias=False)
+        self.layer2 = torch.nn.Linear(hidden, 3, bias=False)
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self.layer2(torch.relu(self.layer1(x)))
+
+    def weights(self) -> list[np.ndarray]:
+        """[(6, 12), (3, 6)] float32 (out, in) matrices, as stg_runtime.onnx_mlp.mlp_to_onnx takes them."""
+        return [self.layer1.weight.detach().cpu().numpy().astype(np.float32),
+                self.layer2.weight.detach().cpu().numpy().astype(np.float32)]
+
+
+def view_inputs(camera: Camera, device, dtype=torch.float32) -> Tensor:
+    """(H, W, 6) [camera centre, unit ray direction of each pixel centre], world coordinates."""
+    rays = torch.as_tensor(camera.ray_directions(), dtype=dtype, device=device)
+    centre = torch.as_tensor(camera.center, dtype=dtype, device=device).expand_as(rays)
+    return torch.cat([centre, rays], dim=-1)
+
+
+class STGParams:
+    """The trainable model: raw per-Gaussian tensors (`self.raw[name]`, leaf tensors with grad) plus
+    the decoder (full models). `kind`: "full" or "lite"; `static`: time terms frozen (see module doc).
+    """
+
+    def __init__(self, raw: dict[str, Tensor], kind: str = "full", static: bool = False,
+                 decoder: Decoder | None = None):
+        if kind not in KINDS:
+            raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
+        self.kind, self.static = kind, bool(static)
+        self.raw: dict[str, Tensor] = {}
+        for name in self.names(kind):
+            t = raw[name].detach().clone().contiguous()
+            t.requires_grad_(self.trainable(name))
+            self.raw[name] = t
+        if kind == "full":
+            self.decoder = decoder if decoder is not None else Decoder()
+            self.decoder.to(self.raw["xyz"].device)
+        else:
+            self.decoder = None
+
+    # -- construction -----------------------------------------------------------------------------
+    @classmethod
+    def from_points(cls, xyz: np.ndarray, rgb: np.ndarray, t_center: np.ndarray, kind: str = "full",
+                    static: bool = False, device="cpu", seed: int = 0) -> "STGParams":
+        """Initial parameters from points xyz (N, 3) with colours rgb (N, 3) in [0, 1] and temporal
+        centres t_center (N,) in normalised time, as the reference initialises from SfM points.
+        `seed` initialises the decoder weights."""
+        xyz = torch.as_tensor(np.asarray(xyz), dtype=torch.float32)
+        n = xyz.shape[0]
+        base = torch.zeros(n, base_channels(kind))
+        base[:, :3] = torch.as_tensor(np.asarray(rgb), dtype=torch.float32)
+        if kind == "full":  # the decoder adds sigmoid: start from the logit of the colour
+            base[:, :3] = torch.logit(base[:, :3].clamp(0.02, 0.98))
+        log_scale = torch.log(torch.sqrt(knn_mean_sq_dist(xyz, 3).clamp_min(1e-7))).clamp(-10, 1)
+        rotation = torch.zeros(n, 4)
+        rotation[:, 0] = 1
+        raw = {"xyz": xyz, "motion": torch.zeros(n, 9), "features": base,
+               "time_features": torch.zeros(n, 3), "log_scale": log_scale[:, None].repeat(1, 3),
+               "rotation": rotation, "omega": torch.zeros(n, 4),
+               "opacity_logit": torch.full((n, 1), math.log(0.1 / 0.9)),
+               "t_center": torch.as_tensor(np.asarray(t_center), dtype=torch.float32).reshape(n, 1),
+               "t_scale_raw": torch.full((n, 1), STATIC_T_SCALE if static else 0.0)}
+        with torch.random.fork_rng():
+            torch.manual_seed(seed)
+            decoder = Decoder() if kind == "full" else None
+        return cls({k: v.to(device) for k, v in raw.items() if k in cls.names(kind)}, kind, static, decoder)
+
+    @staticmethod
+    def names(kind: str) -> tuple[str, ...]:
+        """The raw parameter names of a model kind (lite models have no time_features)."""
+        return tuple(n for n in NAMES if not (kind == "lite" and n == "time_features"))
+
+    def trainable(self, name: str) -> bool:
+        """Whether raw parameter `name` is optimised (the time terms are frozen in static models)."""
+        return not (self.static and name in TIME_NAMES)
+
+    # -- properties -------------------------------------------------------------------------------
+    @property
+    def count(self) -> int:
+        return int(self.raw["xyz"].shape[0])
+
+    @property
+    def device(self) -> torch.device:
+        return self.raw["xyz"].device
+
+    def __getitem__(self, name: str) -> Tensor:
+        return self.raw[name]
+
+    # -- evaluation -------------------------------------------------------------------------------
+    def at(self, tau: float):
+        """The Gaussians at normalised time tau (stg_train.timeeval): means, quats, scales, opacities,
+        features, differentiable w.r.t. the raw parameters."""
+        return timeeval.evaluate(self.raw, tau)
+
+    def colour(self, features: Tensor, camera: Camera, rays: Tensor | None = None) -> Tensor:
+        """Splatted features (H, W, C) -> rgb (H, W, 3). rays: view_inputs(camera), if precomputed."""
+        if self.kind == "lite":
+            return features[..., :3].clamp(0, 1)
+        if rays is None:
+            rays = view_inputs(camera, features.device, features.dtype)
+        x = torch.cat([features[..., 3:], rays], dim=-1)
+        return torch.sigmoid(features[..., :3] + self.decoder(x))
+
+    # -- optimisation -----------------------------------------------------------------------------
+    def param_groups(self, lr: LearningRates, extent: float) -> list[dict]:
+        """Adam parameter groups, one per trainable tensor ("name" key), with their initial rates."""
+        rates = {"xyz": lr.xyz_init * extent, "motion": lr.xyz_init * extent * lr.motion_factor,
+                 "features": lr.features, "time_features": lr.time_features, "log_scale": lr.log_scale,
+                 "rotation": lr.rotation, "omega": lr.omega, "opacity_logit": lr.opacity_logit,
+                 "t_center": lr.t_center, "t_scale_raw": lr.t_scale_raw}
+        groups = [{"name": n, "params": [self.raw[n]], "lr": rates[n]} for n in self.raw if self.trainable(n)]
+        if self.decoder is not None:
+            groups.append({"name": "decoder", "params": list(self.decoder.parameters()), "lr": lr.decoder})
+        return groups
+
+    # -- persistence ------------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        return {"kind": self.kind, "static": self.static,
+                "raw": {k: v.detach().cpu().clone() for k, v in self.raw.items()},
+                "decoder": None if self.decoder is None else {k: v.cpu().clone()
+                                                               for k, v in self.decoder.state_dict().items()}}
+
+    @classmethod
+    def from_state_dict(cls, state: dict, device="cpu") -> "STGParams":
+        decoder = None
+        if state["decoder"] is not None:
+            decoder = Decoder()
+            decoder.load_state_dict(state["decoder"])
+        return cls({k: v.to(device) for k, v in state["raw"].items()}, state["kind"], state["static"], decoder)
+
+
+def position_lr(lr: LearningRates, extent: float, step: int, total: int) -> float:
+    """The exponentially decaying position rate at `step` of `total` (3DGS's schedule, no delay)."""
+    frac = min(max(step / max(total, 1), 0.0), 1.0)
+    return extent * math.exp((1 - frac) * math.log(lr.xyz_init) + frac * math.log(lr.xyz_final))
+
+
+def knn_mean_sq_dist(points: Tensor, k: int = 3, block: int = 2048) -> Tensor:
+    """(N,) mean squared distance of each point to its k nearest other points (blockwise, O(N^2) time)."""
+    n = points.shape[0]
+    if n <= 1:
+        return torch.ones(n)
+    k = min(k, n - 1)
+    out = torch.empty(n)
+    p = points.double()
+    for s in range(0, n, block):
+        d = torch.cdist(p[s:s + block], p).pow(2)
+        d[torch.arange(d.shape[0]), torch.arange(s, s + d.shape[0])] = float("inf")
+        out[s:s + block] = d.topk(k, largest=False).values.mean(1).float()
+    return out
+
+
+def extent_of(cameras) -> float:
+    """Scene extent as 3DGS measures it: 1.1 x the largest distance of a camera centre from their mean
+    (world units); at least 1e-3 x the rig's distance scale for a single camera."""
+    centres = np.stack([c.center for c in cameras])
+    radius = float(np.linalg.norm(centres - centres.mean(0), axis=1).max()) * 1.1
+    return radius if radius > 0 else 1.0
+
+
+def _unproject(camera: Camera, u: np.ndarray, v: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """World points (..., 3) at camera-space depth `depth` through pixel centres (u + 0.5, v + 0.5)."""
+    x_cam = np.stack([(u + 0.5 - camera.cx) / camera.fx * depth, (v + 0.5 - camera.cy) / camera.fy * depth,
+                      depth * np.ones_like(u, dtype=np.float64)], -1)
+    return (x_cam - camera.t) @ camera.R  # R^T (x - t)
+
+
+def _project(camera: Camera, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pixel columns, rows (integer, nearest) and a bool mask of points in front and inside the image."""
+    p = xyz @ camera.R.T + camera.t
+    z = np.maximum(p[..., 2], 1e-9)
+    u = np.floor(camera.fx * p[..., 0] / z + camera.cx).astype(np.int64)
+    v = np.floor(camera.fy * p[..., 1] / z + camera.cy).astype(np.int64)
+    ok = (p[..., 2] > 0) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+    return np.clip(u, 0, camera.width - 1), np.clip(v, 0, camera.height - 1), ok
+
+
+def _box3(image: np.ndarray) -> np.ndarray:
+    """3x3 box blur of an (H, W, 3) image (edges replicated), against noise in colour matching."""
+    pad = np.pad(image, ((1, 1), (1, 1), (0, 0)), mode="edge")
+    h, w = image.shape[:2]
+    return sum(pad[dy:dy + h, dx:dx + w] for dy in range(3) for dx in range(3)) / 9.0
+
+
+def sample_view_volume(dataset, num_points: int, rng: np.random.Generator, min_views: float = 0.5,
+                       depth_candidates: int = 0):
+    """Initial points until SfM exists: sampled in the view volume of the training cameras.
+
+    Each point picks a training camera, a pixel and a depth in [near, far] of that camera
+    (dataset.bounds), and takes the pixel's colour in frame j of that camera, where j spreads the points
+    evenly over the frames (temporal centre j / num_frames, like the reference's per-frame SfM points).
+    Points seen by fewer than `min_views` of the training cameras are drawn again. The depth is uniform
+    when depth_candidates is 0; otherwise it is the most photo-consistent of `depth_candidates` depths
+    (uniform in 1/depth, jittered): the one whose projections into the other training cameras' frame j
+    have the colours closest to the source pixel's (a per-pixel plane sweep; 3x3-blurred frames).
+    Returns xyz (N, 3) float64, rgb (N, 3) float32 in [0, 1], t_center (N,) float32.
+    """
+    cams = [dataset.cameras[i] for i in dataset.train_cameras]
+    if dataset.bounds is None:
+        raise ValueError("sample_view_volume: the dataset has no near/far bounds")
+    bounds = np.asarray(dataset.bounds, dtype=np.float64)[dataset.train_cameras]
+    frames = np.arange(num_points) % dataset.num_frames
+    rng.shuffle(frames)
+    xyz = np.zeros((num_points, 3))
+    src = np.zeros(num_points, np.int64)
+    u, v = np.zeros(num_points, np.int64), np.zeros(num_points, np.int64)
+    todo = np.arange(num_points)
+    for _ in range(50):  # after 50 draws a point stays as drawn (a rig without a common view)
+        if todo.size == 0:
+            break
+        k = todo.size
+        src[todo] = rng.integers(0, len(cams), k)
+        u[todo], v[todo] = rng.integers(0, dataset.width, k), rng.integers(0, dataset.height, k)
+        depth = rng.uniform(bounds[src[todo], 0], bounds[src[todo], 1])
+        for c in np.unique(src[todo]):
+            m = todo[src[todo] == c]
+            xyz[m] = _unproject(cams[c], u[m], v[m], depth[src[todo] == c])
+        seen = sum(_project(cam, xyz[todo])[2].astype(int) for cam in cams)
+        todo = todo[seen < min_views * len(cams)]
+    rgb = np.zeros((num_points, 3), np.float32)
+    for j in range(dataset.num_frames):
+        in_frame = np.flatnonzero(frames == j)
+        if in_frame.size == 0:
+            continue
+        images = [dataset.image(i, j) for i in dataset.train_cameras]
+        rgb[in_frame] = np.stack([images[c][v[i], u[i]] for c, i in zip(src[in_frame], in_frame)])
+        if depth_candidates:
+            blurred = [_box3(im) for im in images]
+            for c in np.unique(src[in_frame]):
+                m = in_frame[src[in_frame] == c]
+                xyz[m] = _photo_consistent(cams, blurred, c, u[m], v[m], bounds[c], depth_candidates, rng)
+    return xyz, rgb, (frames / dataset.num_frames).astype(np.float32)
+
+
+def _photo_consistent(cams, images, c, u, v, near_far, candidates, rng) -> np.ndarray:
+    """(P, 3) points along the rays of pixels (u, v) of camera c at the candidate depth whose colours in
+    the other cameras' images best match camera c's (mean L1 over the views that see the point)."""
+    inv = np.linspace(1.0 / near_far[0], 1.0 / near_far[1], candidates)
+    step = abs(inv[1] - inv[0]) if candidates > 1 else 0.0
+    pts = _unproject(cams[c], u[:, None], v[:, None], 1.0 / inv[None, :])  # (P, D, 3)
+    ref = images[c][v, u][:, None, :]
+    cost = np.zeros(pts.shape[:2])
+    count = np.zeros(pts.shape[:2])
+    for k, cam in enumerate(cams):
+        if k == c:
+            continue
+        pu, pv, ok = _project(cam, pts)
+        cost += np.where(ok, np.abs(images[k][pv, pu] - ref).sum(-1), 0.0)
+        count += ok
+    cost = np.where(count > 0, cost / np.maximum(count, 1), np.inf)
+    best = inv[np.argmin(cost, axis=1)] + rng.uniform(-0.5, 0.5, len(u)) * step
+    best = np.clip(best, min(inv[0], inv[-1]), max(inv[0], inv[-1]))
+    return _unproject(cams[c], u, v, 1.0 / best)

@@ -1,0 +1,268 @@
+"""The training loop: batches of views at one time, loss, Adam, density control, checkpoints, progress.
+
+Each step draws one frame j (normalised time tau = j / num_frames) and `batch` training cameras, renders
+them with the torch splatter, and minimises 0.8 L1 + 0.2 (1 - SSIM) (SSIM with 3DGS's 11x11 Gaussian
+window, sigma 1.5) averaged over the views. Ground-truth frames stay on the CPU as uint8 (the dataset's
+memory map) and only the batch's frames move to the device, so memory does not grow with the frame count.
+
+A checkpoint holds everything the next step depends on (parameters, Adam state, strategy state, the
+step, the numpy / torch / python RNG states), so a run stopped at any moment and resumed from its last
+checkpoint reaches the same state as an uninterrupted run (on the same device and thread count).
+"""
+from __future__ import annotations
+
+import math
+import os
+import random
+import time
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from stg_runtime.camera import Camera
+from stg_runtime.progress import Progress
+
+from .params import LearningRates, STGParams, extent_of, position_lr, sample_view_volume, view_inputs
+from .splat import rasterize
+from .strategy import DensityControl, Schedule, Thresholds
+
+CHECKPOINT_VERSION = 1
+
+
+@dataclass
+class TrainConfig:
+    """Settings of a run (stored in checkpoints and in the exported file's provenance).
+
+    model: "full" (9 features + decoder) or "lite" (rgb); iterations: optimisation steps; batch: views
+    per step (one shared time); num_points: initial Gaussians; depth_candidates: photo-consistency depth
+    search of the initial points (0: uniform depths; see params.sample_view_volume); static: freeze the
+    time terms (ablation); lr_scale: multiplies every reference learning rate; schedule: Schedule field overrides (iterations
+    of this run) on top of the reference schedule stretched to `iterations`; thresholds: Thresholds
+    field overrides; seed: numpy / torch / python seeds; device: "cpu" or "cuda".
+    """
+
+    model: str = "full"
+    iterations: int = 3000
+    batch: int = 2
+    num_points: int = 20000
+    depth_candidates: int = 64
+    static: bool = False
+    lr_scale: float = 1.0
+    schedule: dict = field(default_factory=dict)
+    thresholds: dict = field(default_factory=dict)
+    seed: int = 0
+    device: str = "cpu"
+    checkpoint_every: int = 500
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "TrainConfig":
+        names = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in names})
+
+
+# -- loss -------------------------------------------------------------------------------------------
+def _gauss_window(size: int = 11, sigma: float = 1.5, channels: int = 3, device=None, dtype=None) -> Tensor:
+    x = torch.arange(size, dtype=torch.float64) - size // 2
+    g = torch.exp(-x * x / (2 * sigma * sigma))
+    g = (g / g.sum()).to(device=device, dtype=dtype)
+    return (g[:, None] * g[None, :]).expand(channels, 1, size, size).contiguous()
+
+
+def ssim(img: Tensor, ref: Tensor, window: int = 11, sigma: float = 1.5) -> Tensor:
+    """Mean SSIM of images (B, H, W, 3) in [0, 1], 3DGS's version (Gaussian window, zero padding)."""
+    x, y = img.permute(0, 3, 1, 2), ref.permute(0, 3, 1, 2)
+    c = x.shape[1]
+    w = _gauss_window(window, sigma, c, x.device, x.dtype)
+    pad = window // 2
+    mu_x, mu_y = F.conv2d(x, w, padding=pad, groups=c), F.conv2d(y, w, padding=pad, groups=c)
+    sxx = F.conv2d(x * x, w, padding=pad, groups=c) - mu_x * mu_x
+    syy = F.conv2d(y * y, w, padding=pad, groups=c) - mu_y * mu_y
+    sxy = F.conv2d(x * y, w, padding=pad, groups=c) - mu_x * mu_y
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    s = ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x ** 2 + mu_y ** 2 + c1) * (sxx + syy + c2))
+    return s.mean()
+
+
+def loss_fn(img: Tensor, ref: Tensor, lambda_dssim: float = 0.2) -> Tensor:
+    """(1 - lambda) L1 + lambda (1 - SSIM) over a batch (B, H, W, 3)."""
+    return (1 - lambda_dssim) * (img - ref).abs().mean() + lambda_dssim * (1 - ssim(img, ref))
+
+
+# -- the trainer ------------------------------------------------------------------------------------
+class Trainer:
+    """Trains STGParams on a Dataset (stg_train.data.Dataset).
+
+    out_dir: where checkpoint.pt goes (None: no checkpoints). Build a fresh run with Trainer(dataset,
+    config, out_dir) or continue one with Trainer.resume(dataset, checkpoint_path).
+    """
+
+    def __init__(self, dataset, config: TrainConfig, out_dir=None, _state: dict | None = None):
+        self.dataset, self.config = dataset, config
+        self.out_dir = None if out_dir is None else Path(out_dir)
+        self.device = torch.device(config.device)
+        self.extent = extent_of([dataset.cameras[i] for i in dataset.train_cameras])
+        self.lr = LearningRates().scaled(config.lr_scale)
+        self.schedule = Schedule.scaled(config.iterations, **config.schedule)
+        self.thresholds = Thresholds(**config.thresholds)
+        self._rays: dict[int, Tensor] = {}
+        if _state is None:
+            random.seed(config.seed)
+            torch.manual_seed(config.seed)
+            self.rng = np.random.default_rng(config.seed)
+            xyz, rgb, t_center = sample_view_volume(dataset, config.num_points, self.rng,
+                                                         depth_candidates=config.depth_candidates)
+            self.params = STGParams.from_points(xyz, rgb, t_center, config.model, config.static,
+                                                self.device, seed=config.seed)
+            self.box = np.stack([xyz.min(0), xyz.max(0)])
+            self.step = 0
+        else:
+            self.params = STGParams.from_state_dict(_state["params"], self.device)
+            self.box = np.asarray(_state["box"])
+            self.step = int(_state["step"])
+            self.rng = np.random.default_rng()
+        self.optimizer = torch.optim.Adam(self.params.param_groups(self.lr, self.extent), eps=1e-15)
+        self.strategies = [DensityControl(self.schedule, self.extent, self.thresholds, box=self.box)]
+        self.history: list[dict] = []  # per-step figures: step, loss, psnr, gaussians, seconds
+        self.seconds = 0.0  # training time so far (excluding checkpoints and callbacks)
+        if _state is not None:
+            self.optimizer.load_state_dict(_state["optimizer"])
+            for s, st in zip(self.strategies, _state["strategies"]):
+                s.load_state_dict(st)
+            self.history, self.seconds = list(_state["history"]), float(_state["seconds"])
+            self.rng.bit_generator.state = _state["rng"]["numpy"]
+            torch.set_rng_state(_state["rng"]["torch"])
+            if _state["rng"].get("cuda") is not None and torch.cuda.is_available():
+                torch.cuda.set_rng_state_all(_state["rng"]["cuda"])
+            random.setstate(_state["rng"]["python"])
+
+    # -- rendering ------------------------------------------------------------------------------------
+    def rays(self, camera_index: int) -> Tensor:
+        """(H, W, 6) decoder view inputs of a dataset camera, cached on the device."""
+        if camera_index not in self._rays:
+            if len(self._rays) >= 64:
+                self._rays.clear()
+            self._rays[camera_index] = view_inputs(self.dataset.cameras[camera_index], self.device)
+        return self._rays[camera_index]
+
+    def render(self, camera: Camera, tau: float, gaussians=None, rays: Tensor | None = None):
+        """rgb (H, W, 3) and the splat.RenderOutput of `camera` at normalised time tau (differentiable)."""
+        g = self.params.at(tau) if gaussians is None else gaussians
+        out = rasterize(g.means, g.quats, g.scales, g.opacities, g.features, camera)
+        return self.params.colour(out.features, camera, rays), out
+
+    def ground_truth(self, camera_index: int, frame: int) -> Tensor:
+        """(H, W, 3) float in [0, 1] on the device (moved from the CPU uint8 frame)."""
+        frame_u8 = torch.from_numpy(self.dataset.frame(camera_index, frame))
+        return frame_u8.to(self.device, non_blocking=True).float() / 255.0
+
+    # -- one step -------------------------------------------------------------------------------------
+    def train_step(self) -> dict:
+        """One optimisation step; returns {"loss", "psnr"} of the batch."""
+        cfg, ds = self.config, self.dataset
+        self.step += 1
+        frame = int(self.rng.integers(ds.num_frames))
+        train = ds.train_cameras
+        views = [train[i] for i in self.rng.choice(len(train), size=min(cfg.batch, len(train)), replace=False)]
+        tau = frame / ds.num_frames
+        for group in self.optimizer.param_groups:
+            if group["name"] == "xyz":
+                group["lr"] = position_lr(self.lr, self.extent, self.step, cfg.iterations)
+        gaussians = self.params.at(tau)
+        images, renders = [], []
+        for ci in views:
+            rgb, out = self.render(ds.cameras[ci], tau, gaussians, self.rays(ci))
+            images.append(rgb)
+            renders.append((ds.cameras[ci], out))
+        img = torch.stack(images)
+        gt = torch.stack([self.ground_truth(ci, frame) for ci in views])
+        loss = loss_fn(img, gt)
+        loss.backward()
+        with torch.no_grad():
+            mse = ((img.detach() - gt) ** 2).mean().item()
+        for strategy in self.strategies:
+            strategy.step_post_backward(self.params, self.optimizer, renders, self.step)
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+        return {"loss": loss.item(), "psnr": -10 * math.log10(max(mse, 1e-12))}
+
+    def train(self, progress: bool = True, callback: Callable[["Trainer"], None] | None = None) -> None:
+        """Run to config.iterations, checkpointing every config.checkpoint_every steps and at the end.
+        callback(trainer) runs after each step (its time is not counted in self.seconds)."""
+        cfg = self.config
+        bar = Progress(total=cfg.iterations - self.step, desc="train" if self.step == 0 else f"train from {self.step}",
+                       enabled=progress)
+        try:
+            while self.step < cfg.iterations:
+                t0 = time.perf_counter()
+                figures = self.train_step()
+                self.seconds += time.perf_counter() - t0
+                self.history.append({"step": self.step, **figures, "gaussians": self.params.count,
+                                     "seconds": self.seconds})
+                bar.set(loss=round(figures["loss"], 4), psnr=round(figures["psnr"], 2), gaussians=self.params.count)
+                bar.update()
+                if self.out_dir is not None and (self.step % cfg.checkpoint_every == 0 or self.step == cfg.iterations):
+                    self.save_checkpoint(self.out_dir / "checkpoint.pt")
+                if callback is not None:
+                    callback(self)
+        finally:
+            bar.close()
+
+    # -- evaluation -----------------------------------------------------------------------------------
+    @torch.no_grad()
+    def render_numpy(self, camera: Camera, tau: float) -> np.ndarray:
+        """(H, W, 3) float32 rgb in [0, 1] (no gradient)."""
+        return self.render(camera, tau)[0].clamp(0, 1).cpu().numpy()
+
+    @torch.no_grad()
+    def heldout_psnr(self, frames=None) -> float:
+        """Mean PSNR (dB) over the test cameras at `frames` (default: every frame), torch renderer."""
+        ds = self.dataset
+        frames = range(ds.num_frames) if frames is None else frames
+        values = []
+        for ci in ds.test_cameras:
+            for j in frames:
+                img = self.render_numpy(ds.cameras[ci], j / ds.num_frames)
+                mse = float(np.mean((img.astype(np.float64) - ds.image(ci, j)) ** 2))
+                values.append(-10 * math.log10(max(mse, 1e-12)))
+        return float(np.mean(values))
+
+    # -- checkpoints ----------------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        return {"version": CHECKPOINT_VERSION, "config": asdict(self.config), "step": self.step,
+                "params": self.params.state_dict(), "optimizer": self.optimizer.state_dict(),
+                "strategies": [s.state_dict() for s in self.strategies], "box": self.box.tolist(),
+                "history": self.history, "seconds": self.seconds,
+                "rng": {"numpy": self.rng.bit_generator.state, "torch": torch.get_rng_state(),
+                        "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
+                        "python": random.getstate()}}
+
+    def save_checkpoint(self, path) -> None:
+        """Write the state atomically: a temporary file in the same folder, fsync, then os.replace."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+        try:
+            with open(tmp, "wb") as f:
+                torch.save(self.state_dict(), f)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, path)
+        finally:
+            if tmp.exists():
+                tmp.unlink()
+
+    @classmethod
+    def resume(cls, dataset, path, out_dir=None, device: str | None = None) -> "Trainer":
+        """Continue the run saved in checkpoint `path` (its settings win; `device` may move it)."""
+        state = torch.load(path, map_location="cpu", weights_only=True)
+        if state.get("version") != CHECKPOINT_VERSION:
+            raise ValueError(f"{path}: checkpoint version {state.get('version')} is not {CHECKPOINT_VERSION}")
+        config = TrainConfig.from_dict(state["config"])
+        if device is not None:
+            config.device = device
+        return cls(dataset, config, Path(path).parent if out_dir is None else out_dir, _state=state)
