@@ -20,6 +20,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import stg_train  # noqa: F401  (first: it configures OpenMP before torch loads)
 import torch
 
 from stg_train.cli import DEMO_DEFAULTS, DEMO_TRAINING

@@ -5,5 +5,11 @@ before torch is first imported): torch's training steps are many small parallel 
 OpenMP threads that spin while waiting made each step up to 80x slower on a 2-core machine.
 """
 import os
+import sys
+import warnings
 
+if "torch" in sys.modules and "OMP_WAIT_POLICY" not in os.environ:
+    warnings.warn("stg_train was imported after torch, so OMP_WAIT_POLICY=PASSIVE cannot take effect: CPU "
+                  "training may be many times slower. Import stg_train first, or set OMP_WAIT_POLICY=PASSIVE "
+                  "in the environment.", RuntimeWarning, stacklevel=2)
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
