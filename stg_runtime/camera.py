@@ -103,6 +103,23 @@ class Camera:
         return Camera(self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, width, height,
                       self.world_to_camera, self.name)
 
+    def project(self, points) -> tuple[np.ndarray, np.ndarray]:
+        """World points (..., 3) -> (pixel coordinates (..., 2) as (u, v), camera-space depth (...,)).
+
+        Continuous coordinates: the pixel of column c, row r covers [c, c+1) x [r, r+1). Points at or
+        behind the camera plane (depth <= 0) get meaningless coordinates: check the depth."""
+        p = np.asarray(points, dtype=np.float64) @ self.R.T + self.t
+        z = p[..., 2]
+        zs = np.where(z > 0, z, 1.0)
+        return np.stack([self.fx * p[..., 0] / zs + self.cx, self.fy * p[..., 1] / zs + self.cy], -1), z
+
+    def unproject(self, u, v, depth) -> np.ndarray:
+        """World points (..., 3) at camera-space depth `depth` on the rays through image points (u, v)
+        (continuous coordinates; a pixel centre is (column + 0.5, row + 0.5)); arrays broadcast."""
+        u, v, depth = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in (u, v, depth)))
+        x_cam = np.stack([(u - self.cx) / self.fx * depth, (v - self.cy) / self.fy * depth, depth], -1)
+        return (x_cam - self.t) @ self.R  # R^T (x - t)
+
     def ray_directions(self) -> np.ndarray:
         """(H, W, 3) float64 unit directions, in world coordinates, through every pixel centre."""
         u = (np.arange(self.width) + 0.5 - self.cx) / self.fx

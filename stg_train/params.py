@@ -246,18 +246,14 @@ def extent_of(cameras) -> float:
 
 def _unproject(camera: Camera, u: np.ndarray, v: np.ndarray, depth: np.ndarray) -> np.ndarray:
     """World points (..., 3) at camera-space depth `depth` through pixel centres (u + 0.5, v + 0.5)."""
-    x_cam = np.stack([(u + 0.5 - camera.cx) / camera.fx * depth, (v + 0.5 - camera.cy) / camera.fy * depth,
-                      depth * np.ones_like(u, dtype=np.float64)], -1)
-    return (x_cam - camera.t) @ camera.R  # R^T (x - t)
+    return camera.unproject(u + 0.5, v + 0.5, depth)
 
 
 def _project(camera: Camera, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Pixel columns, rows (integer, nearest) and a bool mask of points in front and inside the image."""
-    p = xyz @ camera.R.T + camera.t
-    z = np.maximum(p[..., 2], 1e-9)
-    u = np.floor(camera.fx * p[..., 0] / z + camera.cx).astype(np.int64)
-    v = np.floor(camera.fy * p[..., 1] / z + camera.cy).astype(np.int64)
-    ok = (p[..., 2] > 0) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+    uv, z = camera.project(xyz)
+    u, v = np.floor(uv[..., 0]).astype(np.int64), np.floor(uv[..., 1]).astype(np.int64)
+    ok = (z > 0) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
     return np.clip(u, 0, camera.width - 1), np.clip(v, 0, camera.height - 1), ok
 
 

@@ -58,3 +58,14 @@ def test_orbit_looks_at_target():
         assert p[0] == pytest.approx(0, abs=1e-9) and p[1] == pytest.approx(0, abs=1e-9) and p[2] > 0
     centres = np.array([c.center for c in path])
     assert np.ptp(centres[:, 0]) > 0.3  # it moves
+
+
+def test_project_unproject_round_trip():
+    cam = Camera.look_at([0.3, -0.2, 0.1], [0, 0, 5], [0, -1, 0], 50, 64, 48)
+    rng = np.random.default_rng(0)
+    u, v, d = rng.uniform(0, 64, 20), rng.uniform(0, 48, 20), rng.uniform(0.5, 9, 20)
+    pts = cam.unproject(u, v, d)
+    uv, z = cam.project(pts)
+    np.testing.assert_allclose(uv, np.stack([u, v], 1), atol=1e-9)
+    np.testing.assert_allclose(z, d, atol=1e-9)
+    np.testing.assert_allclose(cam.project([0, 0, 5.0])[0], [32, 24], atol=1e-9)
