@@ -4,7 +4,10 @@ machine: seconds per iteration, training time to reach 25 / 30 dB held-out PSNR,
 Player on the held-out camera, every frame), Gaussian count and file size.
 
     python bench/train.py [--iterations N] [--eval-every K] [--threads 2] [--model full|lite]
-                          [--data DIR] [--out DIR]
+                          [--device cpu|cuda] [--splatter torch|gsplat] [--data DIR] [--out DIR]
+
+On a GPU: `--device cuda` with the built-in torch splatter, or `--device cuda --splatter gsplat` with
+gsplat's kernels (the `[cuda]` extra).
 
 Held-out PSNR is measured every K steps with the trainer's renderer over every frame of cam00; the time
 that takes is excluded from the training time. The scene is generated once into --data.
@@ -39,7 +42,8 @@ def main() -> None:
     ap.add_argument("--eval-every", type=int, default=100)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--model", default="full", choices=["full", "lite"])
-    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    ap.add_argument("--splatter", default="torch", choices=["torch", "gsplat"])
     ap.add_argument("--data", default=os.path.join(tempfile.gettempdir(), "stg-bench-scene"))
     ap.add_argument("--out", default=None, help="where model.stg and bench.json go (default: a temp folder)")
     args = ap.parse_args()
@@ -52,9 +56,9 @@ def main() -> None:
     ds = load_n3v(data, prefer_png=True)
     out = Path(args.out or tempfile.mkdtemp(prefix="stg-bench-"))
     cfg = TrainConfig(**{**DEMO_TRAINING, "iterations": args.iterations, "num_points": args.points,
-                         "model": args.model, "device": args.device})
+                         "model": args.model, "device": args.device, "splatter": args.splatter})
     print(f"{platform.processor() or platform.machine()}, torch {torch.__version__}, {args.threads} threads; "
-          f"{ds}; {cfg.model} model, {cfg.iterations} iterations, {cfg.num_points} initial points", flush=True)
+          f"{ds}; {cfg.device}, {cfg.splatter} splatter; {cfg.model} model, {cfg.iterations} iterations, {cfg.num_points} initial points", flush=True)
 
     start = time.perf_counter()
     trainer = Trainer(ds, cfg)

@@ -58,7 +58,7 @@ def build_train_parser() -> argparse.ArgumentParser:
                         "the demo's own default with --demo)")
     p.add_argument("--splatter", choices=["auto", "torch", "gsplat"], default="auto",
                    help="rasteriser: torch = the built-in differentiable splatter (CPU and CUDA); gsplat = the "
-                        "gsplat library's CUDA kernels (needs gsplat and CUDA; not available in this version); "
+                        "gsplat library's CUDA kernels (pip install -e \".[cuda]\"; needs --device cuda); "
                         "auto = gsplat when it can run, else torch (default auto)")
     p.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
                    help="where the parameters live and rendering runs (default cpu)")
@@ -89,26 +89,19 @@ def build_train_parser() -> argparse.ArgumentParser:
 
 
 def resolve_splatter(name: str, device: str) -> str:
-    """The backend to train with: "torch" (the only one in this version). Raises ValueError with the
-    reason when `gsplat` is asked for explicitly."""
+    """The backend to train with, "torch" or "gsplat": `auto` picks gsplat when it can run on `device`
+    (installed, CUDA device present), else torch. Raises ValueError with the reason when `gsplat` is asked
+    for explicitly and cannot run."""
+    from .splat_gsplat import unavailable_reason
+
     if name == "torch":
         return "torch"
-    try:
-        import gsplat  # noqa: F401
-        have_gsplat = True
-    except ImportError:
-        have_gsplat = False
-    import torch
-
-    cuda = device == "cuda" and torch.cuda.is_available()
+    reason = unavailable_reason(device)
     if name == "auto":
-        return "torch"  # gsplat would be chosen here when have_gsplat and cuda, once the adapter exists
-    if not have_gsplat:
-        raise ValueError("--splatter gsplat: the gsplat package is not installed (it needs CUDA); "
-                         "use --splatter torch or auto")
-    if not cuda:
-        raise ValueError("--splatter gsplat: needs --device cuda and a CUDA GPU; use --splatter torch or auto")
-    raise ValueError("--splatter gsplat: the gsplat backend is not part of this version yet; use --splatter torch")
+        return "torch" if reason else "gsplat"
+    if reason:
+        raise ValueError(f"--splatter gsplat: {reason}; use --splatter torch or auto")
+    return "gsplat"
 
 
 def load_dataset(path, downscale: int = 1, from_video: bool = False, quiet: bool = False):
@@ -144,7 +137,7 @@ def run_training(dataset, out: Path, config, resume: bool = False, quiet: bool =
     out.mkdir(parents=True, exist_ok=True)
     ckpt = out / "checkpoint.pt"
     if resume and ckpt.exists():
-        trainer = Trainer.resume(dataset, ckpt, out_dir=out, device=config.device)
+        trainer = Trainer.resume(dataset, ckpt, out_dir=out, device=config.device, splatter=config.splatter)
         if not quiet:
             print(f"resuming {ckpt} at step {trainer.step} of {trainer.config.iterations}", file=sys.stderr)
     else:
@@ -178,7 +171,7 @@ def train_main(argv=None) -> int:
     if args.out is None:
         parser.error("--out DIR is required")
     try:
-        resolve_splatter(args.splatter, args.device)
+        splatter = resolve_splatter(args.splatter, args.device)
     except ValueError as e:
         return _error("stg-train", str(e))
     import torch
@@ -188,7 +181,7 @@ def train_main(argv=None) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     config = TrainConfig(model=args.model, batch=args.batch, num_points=args.points, seed=args.seed,
-                         device=args.device, checkpoint_every=args.checkpoint_every)
+                         device=args.device, checkpoint_every=args.checkpoint_every, splatter=splatter)
     if args.iterations:
         config.iterations = args.iterations
     try:

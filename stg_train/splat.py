@@ -67,8 +67,9 @@ class RenderOutput(NamedTuple):
 
     features (H, W, C) = sum w_i f_i; alpha (H, W) = sum w_i; depth (H, W) = sum w_i z_i / alpha (0 where
     alpha == 0), all in the inputs' dtype/device;
-    means2d (M, 2) the 2D means in pixels: after backward, `means2d.grad` is the screen-space positional
-    gradient in pixels (3DGS measures it in NDC: multiply by (W/2, H/2) to compare with its thresholds);
+    means2d (M, 2) the 2D means in pixels ((1, M, 2) from the gsplat backend, its batched tensor): after
+    backward, `means2d.grad` is the screen-space positional gradient in pixels (3DGS measures it in NDC:
+    multiply by (W/2, H/2) to compare with its thresholds);
     radii (M,) int64 footprint radius in pixels, 0 for Gaussians that are culled or touch no pixel;
     visible (M,) bool, radii > 0.
     """
@@ -221,10 +222,16 @@ def _composite_batch(tiles: Tensor, start: Tensor, count: Tensor, gauss: Tensor,
     return acc
 
 
+BACKENDS = ("torch", "gsplat")
+
+
 def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, features: Tensor, camera,
-              *, tile_size: int = 8, chunk: int = 32, max_elements: int = 1 << 22,
+              *, backend: str = "torch", tile_size: int = 8, chunk: int = 32, max_elements: int = 1 << 22,
               checkpoint: bool = False) -> RenderOutput:
     """Render M Gaussians with the rules of formats/stg-v1.md, section 3 (see module docstring).
+
+    backend: "torch" (this module, any device) or "gsplat" (gsplat's CUDA kernels through
+    stg_train.splat_gsplat; the keyword arguments below apply to the torch backend only).
 
     means (M, 3) world positions; quats (M, 4) wxyz (normalised here); scales (M, 3) standard deviations
     (world units); opacities (M,) or (M, 1) in [0, 1]; features (M, C); camera: a
@@ -234,6 +241,12 @@ def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, f
     instead of keeping its intermediates (memory bounded by one batch, about 1.4x the time).
     Returns a RenderOutput (features, alpha, depth, means2d, radii, visible).
     """
+    if backend == "gsplat":
+        from .splat_gsplat import rasterize_gsplat
+
+        return rasterize_gsplat(means, quats, scales, opacities, features, camera)
+    if backend != "torch":
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     W, H = camera.width, camera.height
     ts = int(tile_size)
     ntx, nty = -(-W // ts), -(-H // ts)

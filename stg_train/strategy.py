@@ -154,7 +154,7 @@ class DensityControl:
             g = out.means2d.grad
             if g is None:
                 continue
-            g = g.detach().cpu() * torch.tensor([camera.width / 2.0, camera.height / 2.0])  # px -> NDC
+            g = g.detach().cpu().reshape(-1, 2) * torch.tensor([camera.width / 2.0, camera.height / 2.0])  # px -> NDC
             vis = out.visible.detach().cpu()
             r = out.radii.detach().cpu().float()
             grad = g if grad is None else grad + g

@@ -1,8 +1,8 @@
 """The training loop: batches of views at one time, loss, Adam, density control, checkpoints, progress.
 
 Each step draws one frame j (normalised time tau = j / num_frames) and `batch` training cameras, renders
-them with the torch splatter, and minimises 0.8 L1 + 0.2 (1 - SSIM) (SSIM with 3DGS's 11x11 Gaussian
-window, sigma 1.5) averaged over the views. Ground-truth frames stay on the CPU as uint8 (the dataset's
+them with the configured splatter (stg_train.splat.rasterize), and minimises 0.8 L1 + 0.2 (1 - SSIM)
+(SSIM with 3DGS's 11x11 Gaussian window, sigma 1.5) averaged over the views. Ground-truth frames stay on the CPU as uint8 (the dataset's
 memory map) and only the batch's frames move to the device, so memory does not grow with the frame count.
 
 A checkpoint holds everything the next step depends on (parameters, Adam state, strategy state, the
@@ -43,7 +43,8 @@ class TrainConfig:
     search of the initial points (0: uniform depths; see params.sample_view_volume); static: freeze the
     time terms (ablation); lr_scale: multiplies every reference learning rate; schedule: Schedule field overrides (iterations
     of this run) on top of the reference schedule stretched to `iterations`; thresholds: Thresholds
-    field overrides; seed: numpy / torch / python seeds; device: "cpu" or "cuda".
+    field overrides; seed: numpy / torch / python seeds; device: "cpu" or "cuda"; splatter: the
+    rasteriser backend, "torch" or "gsplat" (stg_train.splat.rasterize).
     """
 
     model: str = "full"
@@ -58,6 +59,7 @@ class TrainConfig:
     seed: int = 0
     device: str = "cpu"
     checkpoint_every: int = 500
+    splatter: str = "torch"
 
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":
@@ -152,7 +154,7 @@ class Trainer:
     def render(self, camera: Camera, tau: float, gaussians=None, rays: Tensor | None = None):
         """rgb (H, W, 3) and the splat.RenderOutput of `camera` at normalised time tau (differentiable)."""
         g = self.params.at(tau) if gaussians is None else gaussians
-        out = rasterize(g.means, g.quats, g.scales, g.opacities, g.features, camera)
+        out = rasterize(g.means, g.quats, g.scales, g.opacities, g.features, camera, backend=self.config.splatter)
         return self.params.colour(out.features, camera, rays), out
 
     def ground_truth(self, camera_index: int, frame: int) -> Tensor:
@@ -257,12 +259,15 @@ class Trainer:
                 tmp.unlink()
 
     @classmethod
-    def resume(cls, dataset, path, out_dir=None, device: str | None = None) -> "Trainer":
-        """Continue the run saved in checkpoint `path` (its settings win; `device` may move it)."""
+    def resume(cls, dataset, path, out_dir=None, device: str | None = None, splatter: str | None = None) -> "Trainer":
+        """Continue the run saved in checkpoint `path` (its settings win; `device` and `splatter` may
+        move it to another device or rasteriser backend)."""
         state = torch.load(path, map_location="cpu", weights_only=True)
         if state.get("version") != CHECKPOINT_VERSION:
             raise ValueError(f"{path}: checkpoint version {state.get('version')} is not {CHECKPOINT_VERSION}")
         config = TrainConfig.from_dict(state["config"])
         if device is not None:
             config.device = device
+        if splatter is not None:
+            config.splatter = splatter
         return cls(dataset, config, Path(path).parent if out_dir is None else out_dir, _state=state)
