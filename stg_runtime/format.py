@@ -18,10 +18,10 @@ import numpy as np
 
 from . import onnx_mlp
 from .camera import Camera
-from .model import ACTIVATIONS, ATTRIBUTES, FEATURE_CHANNELS, KINDS, Model, Segment, attribute_shape
+from .model import ACTIVATIONS, ATTRIBUTES, FEATURE_CHANNELS, KINDS, Model, Segment, allowed_channels, attribute_shape
 
 MAGIC = b"\x89STG\r\n\x1a\n"
-VERSION = (1, 0)
+VERSION = (1, 1)  # the version this module reads and writes; see written_version()
 PREFIX = struct.Struct("<8sHHQ")  # magic, major, minor, header length
 MAX_HEADER = 64 << 20
 ALIGN = 8
@@ -111,6 +111,12 @@ def error_bound(array, encoding: str):
 # -- writing ------------------------------------------------------------------------------------
 
 
+def written_version(kind: str) -> tuple[int, int]:
+    """The version a writer puts in a file of `kind`: 1.1 for "sh" (added in 1.1), else 1.0, which every
+    1.x reader opens."""
+    return (1, 1) if kind == "sh" else (1, 0)
+
+
 def dumps(model: Model, encodings: dict[str, str] | None = None, codec: str = "zlib", level: int = 6,
           provenance: dict | None = None) -> bytes:
     """The bytes of a .stg file holding `model`; see save()."""
@@ -158,7 +164,7 @@ def dumps(model: Model, encodings: dict[str, str] | None = None, codec: str = "z
               "cameras": [c.to_dict() for c in model.cameras], "bounds": bounds, "provenance": provenance}
     text = _json(header).encode("utf-8")
     text += b" " * (-(PREFIX.size + len(text)) % ALIGN)  # the data section starts 8-byte aligned
-    body = PREFIX.pack(MAGIC, *VERSION, len(text)) + text + bytes(data)
+    body = PREFIX.pack(MAGIC, *written_version(model.kind), len(text)) + text + bytes(data)
     return body + hashlib.sha256(body).digest()
 
 
@@ -251,7 +257,8 @@ def _decode(buf: memoryview) -> Model:
     section = buf[start:-32]
     kind = _get(header, "kind", str, "header")
     if kind not in KINDS:
-        raise ValueError(f"header: kind must be one of {KINDS}, got {kind!r}")
+        raise ValueError(f"header: unknown model kind {kind!r} in a version {major}.{minor} file (this reader, "
+                         f"version {VERSION[0]}.{VERSION[1]}, renders {', '.join(KINDS)}; a newer one may read it)")
     segments = [_segment(s, f"segment {i}", kind, section)
                 for i, s in enumerate(_get(header, "segments", list, "header"))]
     if not segments:
@@ -288,7 +295,9 @@ def _segment(s, where: str, kind: str, section: memoryview) -> Segment:
     for name in ATTRIBUTES:
         if name not in attributes:
             raise ValueError(f"{where}: missing attribute {name!r}")
-        shape = attribute_shape(name, count, pdeg, qdeg, FEATURE_CHANNELS[kind])
+    channels = _feature_channels(attributes["features"], kind, f"{where}, attribute 'features'")
+    for name in ATTRIBUTES:
+        shape = attribute_shape(name, count, pdeg, qdeg, channels)
         arrays[name] = _array(attributes[name], shape, section, f"{where}, attribute {name!r}")
     decoder, activation = s.get("decoder"), "sigmoid"
     if decoder is not None:
@@ -306,6 +315,19 @@ def _segment(s, where: str, kind: str, section: memoryview) -> Segment:
         return Segment(start, frames, decoder=decoder, activation=activation, **arrays)
     except ValueError as e:
         raise ValueError(f"{where}: {e}") from e
+
+
+def _feature_channels(spec, kind: str, where: str) -> int:
+    """The features' channel count: fixed by the kind (lite 3, full 9), or for "sh" the one the array's
+    shape declares, which must be 3 (d+1)^2 for an SH degree d in 0..3."""
+    if kind != "sh":
+        return FEATURE_CHANNELS[kind]
+    shape = spec.get("shape") if isinstance(spec, dict) else None
+    allowed = allowed_channels(kind)
+    if not (isinstance(shape, list) and len(shape) == 2 and type(shape[1]) is int and shape[1] in allowed):
+        raise ValueError(f"{where}: shape {shape} is not (count, C) with C one of {allowed} "
+                         "(3 (d+1)^2 SH coefficients, degree d in 0..3)")
+    return shape[1]
 
 
 def _array(spec, shape: tuple, section: memoryview, where: str) -> np.ndarray:

@@ -10,11 +10,19 @@ import numpy as np
 
 from .camera import Camera
 
-KINDS = ("lite", "full")
+KINDS = ("lite", "full", "sh")
 ACTIVATIONS = ("sigmoid", "clamp", "identity")
 #: Attribute name -> trailing shape, given position degree P, rotation degree Q and channels C.
 ATTRIBUTES = ("opacity", "t_center", "t_scale", "position", "rotation", "scale", "features")
+#: Feature channels of the kinds with one layout ("sh" models have 3 (d+1)^2, see SH_CHANNELS).
 FEATURE_CHANNELS = {"lite": 3, "full": 9}
+#: "sh" models: spherical-harmonics degree d (0..3) -> feature channels 3 (d+1)^2 (stg_runtime/sh.py).
+SH_CHANNELS = {0: 3, 1: 12, 2: 27, 3: 48}
+
+
+def allowed_channels(kind: str) -> tuple[int, ...]:
+    """The feature channel counts a segment of a `kind` model may have."""
+    return tuple(SH_CHANNELS.values()) if kind == "sh" else (FEATURE_CHANNELS[kind],)
 
 
 def attribute_shape(name: str, count: int, position_degree: int, rotation_degree: int, channels: int) -> tuple:
@@ -36,7 +44,8 @@ class Segment:
 
     opacity (N,) in [0, 1]; t_center (N,) normalised time; t_scale (N,) >= 0;
     position (N, P+1, 3) polynomial coefficients; rotation (N, Q+1, 4) quaternion coefficients (wxyz);
-    scale (N, 3) standard deviations; features (N, C).
+    scale (N, 3) standard deviations; features (N, C): C = 3 (lite), 9 (full) or 3 (d+1)^2 (sh: SH
+    coefficients of degree d, coefficient-major, see stg_runtime/sh.py).
     decoder: ONNX bytes (full models) or None; activation: how the decoder output becomes rgb.
     """
 
@@ -125,6 +134,14 @@ class Model:
         return sum(s.num_frames for s in self.segments)
 
     @property
+    def sh_degree(self) -> int | None:
+        """The spherical-harmonics degree of an "sh" model (its segments' highest), None for other kinds."""
+        if self.kind != "sh":
+            return None
+        inverse = {c: d for d, c in SH_CHANNELS.items()}
+        return max(inverse[s.channels] for s in self.segments)
+
+    @property
     def duration(self) -> float:
         """Seconds covered, num_frames / fps."""
         return self.num_frames / self.fps
@@ -136,11 +153,12 @@ class Model:
             raise ValueError(f"model: fps must be positive, got {self.fps}")
         if not self.segments:
             raise ValueError("model: no segments")
-        want_c = FEATURE_CHANNELS[self.kind]
+        want_c = allowed_channels(self.kind)
         for i, seg in enumerate(self.segments):
-            if seg.channels != want_c:
-                raise ValueError(f"model: segment {i} has {seg.channels} feature channels, a {self.kind} model has {want_c}")
-            if (seg.decoder is None) != (self.kind == "lite"):
+            if seg.channels not in want_c:
+                raise ValueError(f"model: segment {i} has {seg.channels} feature channels, a {self.kind} model has "
+                                 f"{' or '.join(map(str, want_c))}")
+            if (seg.decoder is None) != (self.kind != "full"):
                 raise ValueError(f"model: segment {i}: a {self.kind} model {'needs' if self.kind == 'full' else 'has no'} decoder")
             if i and seg.start_frame != self.segments[i - 1].start_frame + self.segments[i - 1].num_frames:
                 raise ValueError(f"model: segment {i} starts at frame {seg.start_frame}, not right after segment {i - 1}")

@@ -12,6 +12,7 @@ from .camera import Camera
 from .decoder import Decoder, lite_colour
 from .model import Model, Segment
 from .progress import Progress
+from .sh import sh_colours
 from .splat_cpu import rasterize
 from .timeeval import evaluate
 from .video import FrameWriter
@@ -20,7 +21,8 @@ DEVICES = ("cpu", "cuda", "auto")
 
 
 class Rendered(NamedTuple):
-    """One render: rgb (H, W, 3) in [0, 1]; features (H, W, C) splatted; alpha (H, W); depth (H, W)
+    """One render: rgb (H, W, 3) in [0, 1]; features (H, W, C) splatted (for "sh" models the splatted
+    per-Gaussian colours, C = 3); alpha (H, W); depth (H, W)
     expected depth along the camera's z axis (0 where alpha is 0). All float32."""
 
     rgb: np.ndarray
@@ -98,8 +100,11 @@ class Player:
             raise ValueError(f"t = {t} s is outside the model's time span [{self.start_time}, {end}] s")
         segment, tau = self.model.segment_at(t)
         g = evaluate(segment, tau)
-        features, alpha, depth = rasterize(g.means, g.quats, g.scales, g.opacities, g.features, camera)
-        if self.model.kind == "lite":
+        splatted = g.features
+        if self.model.kind == "sh":  # colour per Gaussian for this view, before splatting (as 3DGS does)
+            splatted = sh_colours(g.features, g.means, camera.center)
+        features, alpha, depth = rasterize(g.means, g.quats, g.scales, g.opacities, splatted, camera)
+        if self.model.kind in ("lite", "sh"):
             rgb = lite_colour(features)
         else:
             rgb = self._decoder(segment)(features, camera)
