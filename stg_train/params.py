@@ -19,8 +19,11 @@ The full model adds the colour decoder (`Decoder`: 12 -> 6, ReLU, 6 -> 3, no bia
 rgb = sigmoid(F[0:3] + decoder([F[3:9], camera centre, ray direction])); the lite model's rgb is F[0:3]
 clamped to [0, 1] (formats/stg-v1.md, section 2).
 
-A *static* parameter set (`static=True`, the ablation "time terms frozen") keeps motion, omega and the
-time features at 0 and the temporal opacity at 1 (t_scale_raw fixed at STATIC_T_SCALE), untrained.
+Ablations (the paper's Table 4) switch components off by freezing raw parameters at their initial
+values (`frozen`, names of COMPONENTS): "temporal_opacity" keeps t_scale_raw at STATIC_T_SCALE (temporal
+opacity 1 at every time; t_center then only anchors the motion), "motion" keeps motion at 0,
+"rotation" keeps omega at 0, "time_features" keeps the time features at 0. A *static* parameter set
+(`static=True`, "time terms frozen") freezes all four.
 """
 from __future__ import annotations
 
@@ -43,6 +46,18 @@ TIME_NAMES = ("motion", "omega", "time_features", "t_center", "t_scale_raw")
 #: Raw temporal scale of static models: exp(-(dt / e^10)^2) = 1 to float32 precision for |dt| <= 1.
 STATIC_T_SCALE = 10.0
 KINDS = ("full", "lite")
+#: Time components that an ablation can switch off, and the raw parameters each keeps at its initial value.
+COMPONENTS = {"temporal_opacity": ("t_center", "t_scale_raw"), "motion": ("motion",), "rotation": ("omega",),
+              "time_features": ("time_features",)}
+
+
+def check_frozen(frozen) -> tuple[str, ...]:
+    """The component names of `frozen` (any iterable of COMPONENTS keys), sorted; ValueError for others."""
+    names = tuple(sorted(set(frozen)))
+    unknown = [n for n in names if n not in COMPONENTS]
+    if unknown:
+        raise ValueError(f"unknown component(s) {unknown} to freeze; choose from {sorted(COMPONENTS)}")
+    return names
 
 
 def base_channels(kind: str) -> int:
@@ -105,14 +120,16 @@ def view_inputs(camera: Camera, device, dtype=torch.float32) -> Tensor:
 
 class STGParams:
     """The trainable model: raw per-Gaussian tensors (`self.raw[name]`, leaf tensors with grad) plus
-    the decoder (full models). `kind`: "full" or "lite"; `static`: time terms frozen (see module doc).
+    the decoder (full models). `kind`: "full" or "lite"; `frozen`: COMPONENTS switched off (see module
+    doc); `static=True` freezes them all.
     """
 
     def __init__(self, raw: dict[str, Tensor], kind: str = "full", static: bool = False,
-                 decoder: Decoder | None = None):
+                 decoder: Decoder | None = None, frozen=()):
         if kind not in KINDS:
             raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
-        self.kind, self.static = kind, bool(static)
+        self.kind = kind
+        self.frozen = tuple(sorted(COMPONENTS)) if static else check_frozen(frozen)
         self.raw: dict[str, Tensor] = {}
         for name in self.names(kind):
             t = raw[name].detach().clone().contiguous()
@@ -127,29 +144,31 @@ class STGParams:
     # -- construction -----------------------------------------------------------------------------
     @classmethod
     def from_points(cls, xyz: np.ndarray, rgb: np.ndarray, t_center: np.ndarray, kind: str = "full",
-                    static: bool = False, device="cpu", seed: int = 0) -> "STGParams":
+                    static: bool = False, device="cpu", seed: int = 0, frozen=()) -> "STGParams":
         """Initial parameters from points xyz (N, 3) with colours rgb (N, 3) in [0, 1] and temporal
         centres t_center (N,) in normalised time, as the reference initialises from SfM points.
-        `seed` initialises the decoder weights."""
+        `seed` initialises the decoder weights; static / frozen: see the class."""
+        frozen = tuple(sorted(COMPONENTS)) if static else check_frozen(frozen)
         xyz = torch.as_tensor(np.asarray(xyz), dtype=torch.float32)
-        n = xyz.shape[0]
-        base = torch.zeros(n, base_channels(kind))
-        base[:, :3] = torch.as_tensor(np.asarray(rgb), dtype=torch.float32)
-        if kind == "full":  # the decoder adds sigmoid: start from the logit of the colour
-            base[:, :3] = torch.logit(base[:, :3].clamp(0.02, 0.98))
         log_scale = torch.log(torch.sqrt(knn_mean_sq_dist(xyz, 3).clamp_min(1e-7))).clamp(-10, 1)
-        rotation = torch.zeros(n, 4)
-        rotation[:, 0] = 1
-        raw = {"xyz": xyz, "motion": torch.zeros(n, 9), "features": base,
-               "time_features": torch.zeros(n, 3), "log_scale": log_scale[:, None].repeat(1, 3),
-               "rotation": rotation, "omega": torch.zeros(n, 4),
-               "opacity_logit": torch.full((n, 1), math.log(0.1 / 0.9)),
-               "t_center": torch.as_tensor(np.asarray(t_center), dtype=torch.float32).reshape(n, 1),
-               "t_scale_raw": torch.full((n, 1), STATIC_T_SCALE if static else 0.0)}
+        raw = initial_raw(xyz, torch.as_tensor(np.asarray(rgb), dtype=torch.float32),
+                          torch.as_tensor(np.asarray(t_center), dtype=torch.float32), log_scale, kind, frozen)
         with torch.random.fork_rng():
             torch.manual_seed(seed)
             decoder = Decoder() if kind == "full" else None
-        return cls({k: v.to(device) for k, v in raw.items() if k in cls.names(kind)}, kind, static, decoder)
+        return cls({k: v.to(device) for k, v in raw.items()}, kind, False, decoder, frozen)
+
+    def new_rows(self, xyz: Tensor, rgb: Tensor, t_center: Tensor, opacity: float = 0.1) -> dict[str, Tensor]:
+        """Raw values (on this model's device) of new Gaussians at xyz (K, 3) with colours rgb (K, 3) in
+        [0, 1], temporal centres t_center (K,) and spatial `opacity`, initialised like from_points (scale
+        from the 3 nearest points among the new and the existing ones), for strategy.append_gaussians."""
+        xyz = xyz.detach().float().cpu()
+        k = xyz.shape[0]
+        both = torch.cat([xyz, self.raw["xyz"].detach().float().cpu()])
+        log_scale = torch.log(torch.sqrt(knn_mean_sq_dist(both, 3, rows=k).clamp_min(1e-7))).clamp(-10, 1)
+        raw = initial_raw(xyz, rgb.detach().float().cpu(), t_center.detach().float().cpu(), log_scale, self.kind,
+                          self.frozen, opacity)
+        return {name: v.to(self.device) for name, v in raw.items()}
 
     @staticmethod
     def names(kind: str) -> tuple[str, ...]:
@@ -157,8 +176,13 @@ class STGParams:
         return tuple(n for n in NAMES if not (kind == "lite" and n == "time_features"))
 
     def trainable(self, name: str) -> bool:
-        """Whether raw parameter `name` is optimised (the time terms are frozen in static models)."""
-        return not (self.static and name in TIME_NAMES)
+        """Whether raw parameter `name` is optimised (not kept fixed by a frozen component)."""
+        return not any(name in COMPONENTS[c] for c in self.frozen)
+
+    @property
+    def static(self) -> bool:
+        """True when every time component is frozen (a static scene model)."""
+        return len(self.frozen) == len(COMPONENTS)
 
     # -- properties -------------------------------------------------------------------------------
     @property
@@ -201,7 +225,7 @@ class STGParams:
 
     # -- persistence ------------------------------------------------------------------------------
     def state_dict(self) -> dict:
-        return {"kind": self.kind, "static": self.static,
+        return {"kind": self.kind, "static": self.static, "frozen": list(self.frozen),
                 "raw": {k: v.detach().cpu().clone() for k, v in self.raw.items()},
                 "decoder": None if self.decoder is None else {k: v.cpu().clone()
                                                                for k, v in self.decoder.state_dict().items()}}
@@ -212,7 +236,30 @@ class STGParams:
         if state["decoder"] is not None:
             decoder = Decoder()
             decoder.load_state_dict(state["decoder"])
-        return cls({k: v.to(device) for k, v in state["raw"].items()}, state["kind"], state["static"], decoder)
+        return cls({k: v.to(device) for k, v in state["raw"].items()}, state["kind"], state["static"], decoder,
+                   state.get("frozen", ()))
+
+
+def initial_raw(xyz: Tensor, rgb: Tensor, t_center: Tensor, log_scale: Tensor, kind: str, frozen=(),
+                opacity: float = 0.1) -> dict[str, Tensor]:
+    """Initial raw parameters (CPU) of K Gaussians: xyz (K, 3), rgb (K, 3) in [0, 1], t_center (K,),
+    log_scale (K,) isotropic; identity rotation, no motion, spatial `opacity`, temporal scale 0 (or
+    STATIC_T_SCALE when "temporal_opacity" is frozen). The full model's base colour is logit(rgb) (the
+    decoder adds sigmoid)."""
+    n = xyz.shape[0]
+    base = torch.zeros(n, base_channels(kind))
+    base[:, :3] = rgb
+    if kind == "full":
+        base[:, :3] = torch.logit(rgb.clamp(0.02, 0.98))
+    rotation = torch.zeros(n, 4)
+    rotation[:, 0] = 1
+    raw = {"xyz": xyz, "motion": torch.zeros(n, 9), "features": base,
+           "time_features": torch.zeros(n, 3), "log_scale": log_scale.reshape(n, 1).repeat(1, 3),
+           "rotation": rotation, "omega": torch.zeros(n, 4),
+           "opacity_logit": torch.full((n, 1), math.log(opacity / (1 - opacity))),
+           "t_center": t_center.reshape(n, 1),
+           "t_scale_raw": torch.full((n, 1), STATIC_T_SCALE if "temporal_opacity" in frozen else 0.0)}
+    return {k: v for k, v in raw.items() if k in STGParams.names(kind)}
 
 
 def position_lr(lr: LearningRates, extent: float, step: int, total: int) -> float:
@@ -221,16 +268,18 @@ def position_lr(lr: LearningRates, extent: float, step: int, total: int) -> floa
     return extent * math.exp((1 - frac) * math.log(lr.xyz_init) + frac * math.log(lr.xyz_final))
 
 
-def knn_mean_sq_dist(points: Tensor, k: int = 3, block: int = 2048) -> Tensor:
-    """(N,) mean squared distance of each point to its k nearest other points (blockwise, O(N^2) time)."""
+def knn_mean_sq_dist(points: Tensor, k: int = 3, block: int = 2048, rows: int | None = None) -> Tensor:
+    """(N,) mean squared distance of each point to its k nearest other points (blockwise, O(N^2) time);
+    only for the first `rows` points ((rows,) result) when given."""
     n = points.shape[0]
+    m = n if rows is None else min(int(rows), n)
     if n <= 1:
-        return torch.ones(n)
+        return torch.ones(m)
     k = min(k, n - 1)
-    out = torch.empty(n)
+    out = torch.empty(m)
     p = points.double()
-    for s in range(0, n, block):
-        d = torch.cdist(p[s:s + block], p).pow(2)
+    for s in range(0, m, block):
+        d = torch.cdist(p[s:min(s + block, m)], p).pow(2)
         d[torch.arange(d.shape[0]), torch.arange(s, s + d.shape[0])] = float("inf")
         out[s:s + block] = d.topk(k, largest=False).values.mean(1).float()
     return out

@@ -5,11 +5,16 @@ renders, step)` once per iteration after `loss.backward()` and before `optimizer
 reads the screen-space gradients of the renders, and on its schedule edits the Gaussians through
 `append_gaussians` / `keep_gaussians`, which keep the Adam state of every parameter tensor in step.
 
-Other strategies (e.g. guided sampling, a later issue) plug in the same way: an object with
+Other strategies (e.g. guided sampling, stg_train.guided) plug in the same way: an object with
 `step_post_backward(params, optimizer, renders, step)`, `state_dict()` and `load_state_dict(state)`,
-placed in the trainer's list of strategies. They may add Gaussians with `append_gaussians` (new rows
-go at the end; `DensityControl` extends its statistics with zeros for them) and must leave removing
-them to `DensityControl`.
+placed in the trainer's list of strategies after `DensityControl`. They may add Gaussians with
+`append_gaussians` (new rows go at the end; `DensityControl` extends its statistics with zeros for them)
+and must leave removing them to `DensityControl`. A strategy that needs more than the batch's renders
+(ground truth, renders of other training views) sets the class attribute `wants_context = True`; the
+trainer then calls `step_post_backward(params, optimizer, renders, step, context=StepContext(...))`
+with the dataset, the step's frame and time, and functions that render a training view and fetch its
+ground truth. Random numbers must come from torch's global generator (checkpointed by the trainer), so
+that a resumed run reaches the same state.
 
 Thresholds and schedule follow the reference implementation (N3V settings, 30k iterations): densify
 from 500 every 100 iterations for 6 rounds (gradient threshold 2e-4 in NDC units, percent_dense 0.01,
@@ -21,6 +26,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, replace
+from typing import Callable, NamedTuple
 
 import torch
 from torch import Tensor
@@ -40,6 +46,8 @@ class Schedule:
     reset_every: int = 3000  # opacity reset period; 0 disables
     reset_until: int = 9000
     outside_at: int = 10000  # remove Gaussians outside the initial box at this step; 0 disables
+    guided_start: int = 1600  # guided sampling (stg_train.guided): views chosen at this step, first sampling
+    guided_every: int = 100  # steps between guided samplings (one per chosen view)
 
     @classmethod
     def scaled(cls, total: int, reference_total: int = 30000, min_every: int = 25, min_start: int = 50,
@@ -49,18 +57,39 @@ class Schedule:
         Floors keep short runs sensible (measured on the synthetic scenes): at least `min_every` steps of
         gradient statistics per refine step, the first after `min_start` steps, and opacity resets at
         least `min_reset_every` steps apart (opacity needs that long to recover; runs shorter than
-        about 3x that have none). A 30k-iteration run gets exactly the reference schedule. Keyword
-        overrides replace single fields."""
+        about 3x that have none). Guided sampling starts where the reference's does relative to density
+        control (its 1600 = refine_start + (densify_rounds + 5) refine periods, after the densification
+        rounds, once the loss is stable), or at the scaled 1600 if later; its samplings are a refine
+        period apart. A 30k-iteration run gets exactly the reference schedule. Keyword overrides
+        replace single fields (they do not move the other fields)."""
         f = total / reference_total
         ref = cls()
-        sched = cls(refine_start=max(min_start, round(ref.refine_start * f)),
-                    refine_every=max(min_every, round(ref.refine_every * f)),
+        start = max(min_start, round(ref.refine_start * f))
+        every = max(min_every, round(ref.refine_every * f))
+        sched = cls(refine_start=start, refine_every=every,
                     densify_rounds=ref.densify_rounds,
                     prune_until=round(ref.prune_until * f),
                     reset_every=max(min_reset_every, round(ref.reset_every * f)),
                     reset_until=round(ref.reset_until * f),
-                    outside_at=round(ref.outside_at * f))
+                    outside_at=round(ref.outside_at * f),
+                    guided_start=max(round(ref.guided_start * f), start + (ref.densify_rounds + 5) * every),
+                    guided_every=max(min_every, round(ref.guided_every * f)))
         return replace(sched, **overrides)
+
+
+class StepContext(NamedTuple):
+    """What the trainer passes to strategies with `wants_context = True` (see the module docstring).
+
+    dataset: the stg_train.data.Dataset; frame: the step's frame index; tau: its normalised time;
+    render(camera_index, tau) -> (rgb (H, W, 3), splat.RenderOutput) of the current parameters (call it
+    under torch.no_grad()); ground_truth(camera_index, frame) -> (H, W, 3) float in [0, 1] on the device.
+    """
+
+    dataset: object
+    frame: int
+    tau: float
+    render: Callable
+    ground_truth: Callable
 
 
 @dataclass(frozen=True)
