@@ -99,8 +99,8 @@ def trainer_render(params: STGParams, camera: Camera, tau: float) -> np.ndarray:
 
 
 def compare_with_runtime(params: STGParams, player: Player, cameras: list[Camera], frames) -> GoldenDiff:
-    """The worst GoldenDiff of trainer rgb vs runtime rgb over every camera x frame (frame j at
-    t = start + j / fps)."""
+    """The worst GoldenDiff of trainer rgb vs runtime rgb over every camera x frame j of the player's
+    first segment (trainer at tau = j / num_frames, player at t = (start_frame + j) / fps)."""
     worst = GoldenDiff(0.0, 0.0)
     seg = player.model.segments[0]
     for cam in cameras:
@@ -113,21 +113,23 @@ def compare_with_runtime(params: STGParams, player: Player, cameras: list[Camera
 
 def export(params: STGParams, path, cameras: list[Camera], fps: float, num_frames: int,
            check_cameras: list[Camera] | None = None, check_frames=None, bounds=None,
-           provenance: dict | None = None) -> ExportReport:
-    """Write `params` to `path` (.stg, float32 attributes), then compare the trainer's and the runtime's
-    renders of check_cameras (default: none) at check_frames (default: first, middle and last frame).
-    Raises ExportMismatch (the file stays, for inspection) when they differ beyond the golden tolerance."""
+           provenance: dict | None = None, start_frame: int = 0) -> ExportReport:
+    """Write `params` to `path` (.stg, float32 attributes) as one segment covering frames
+    [start_frame, start_frame + num_frames) of the video, then compare the trainer's and the runtime's
+    renders of check_cameras (default: none) at check_frames, counted within the segment (default: its
+    first, middle and last frame). Raises ExportMismatch (the file stays, for inspection) when they
+    differ beyond the golden tolerance."""
     path = Path(path)
     if path.parent and not path.parent.exists():
         os.makedirs(path.parent, exist_ok=True)
-    model = to_model(params, cameras, fps, num_frames, bounds, provenance)
+    model = to_model(params, cameras, fps, num_frames, bounds, provenance, start_frame=start_frame)
     stg_format.save(model, path)
     size = path.stat().st_size
     if not check_cameras:
         return ExportReport(path, size, None, [])
     frames = sorted({0, num_frames // 2, num_frames - 1}) if check_frames is None else list(check_frames)
     worst = compare_with_runtime(params, Player(path, device="cpu"), check_cameras, frames)
-    checked = [(c.name, j) for c in check_cameras for j in frames]
+    checked = [(c.name, start_frame + j) for c in check_cameras for j in frames]
     if not worst.ok:
         raise ExportMismatch(f"{path}: the runtime's render differs from the trainer's (max abs rgb "
                              f"{worst.max_abs:.3g}, {100 * worst.fraction_over:.3g}% of values over "
@@ -138,7 +140,8 @@ def export(params: STGParams, path, cameras: list[Camera], fps: float, num_frame
 
 def export_trainer(trainer, path, check: bool = True) -> ExportReport:
     """Export a stg_train.trainer.Trainer's current parameters with its dataset's cameras, fps, frame
-    count and bounds, checked on the dataset's held-out cameras (when `check`)."""
+    range (start_frame and frame count: a Dataset.frame_range view gives one segment of a longer video)
+    and bounds, checked on the dataset's held-out cameras (when `check`)."""
     from dataclasses import asdict
 
     ds = trainer.dataset
@@ -146,4 +149,4 @@ def export_trainer(trainer, path, check: bool = True) -> ExportReport:
                       data=None if ds.path is None else str(ds.path))
     check_cameras = [ds.cameras[i] for i in ds.test_cameras] if check else None
     return export(trainer.params, path, ds.cameras, ds.fps, ds.num_frames, check_cameras=check_cameras,
-                  bounds=ds.scene_bounds, provenance=prov)
+                  bounds=ds.scene_bounds, provenance=prov, start_frame=getattr(ds, "start_frame", 0))

@@ -47,6 +47,7 @@ def evaluate_player(player, dataset, camera_indices=None, frames=None) -> dict:
     import time
 
     cams = dataset.test_cameras if camera_indices is None else list(camera_indices)
+    start_frame = getattr(dataset, "start_frame", 0)  # a Dataset.frame_range view: its frame j is video frame start + j
     frames = list(range(dataset.num_frames)) if frames is None else list(frames)
     if not cams or not frames:
         raise ValueError("evaluate_player: no camera or no frame to evaluate")
@@ -56,7 +57,7 @@ def evaluate_player(player, dataset, camera_indices=None, frames=None) -> dict:
         cam = dataset.cameras[ci]
         for j in frames:
             start = time.perf_counter()
-            image = player.render(cam, j / dataset.fps)
+            image = player.render(cam, (start_frame + j) / dataset.fps)
             seconds += time.perf_counter() - start
             rows.append({"camera": cam.name, "frame": j, **image_metrics(image, dataset.image(ci, j))})
     means = {k: float(np.mean([r[k] for r in rows])) for k in ("psnr", "ssim", "dssim1", "dssim2")}

@@ -6,6 +6,7 @@ RAM or onto a GPU as a whole.
 """
 from __future__ import annotations
 
+import copy
 import json
 import os
 from pathlib import Path
@@ -31,7 +32,10 @@ class Dataset:
     test_cameras: indices of held-out cameras; `train_cameras` are the others.
     bounds: (C, 2) float64 near and far depth per camera (world units) when the layout has them, else None.
     scene_bounds: (min (3,), max (3,)) world box when the layout has one, else None.
+    start_frame: index in the whole video of this dataset's frame 0 (non-zero for `frame_range` views).
     """
+
+    start_frame = 0
 
     def __init__(self, cameras: Sequence[Camera], frames, fps: float, test_cameras: Iterable[int] = (),
                  bounds: np.ndarray | None = None, scene_bounds=None, path: str | os.PathLike | None = None):
@@ -70,8 +74,8 @@ class Dataset:
 
     @property
     def frame_times(self) -> np.ndarray:
-        """(F,) float64 seconds: k / fps."""
-        return np.arange(self.num_frames) / self.fps
+        """(F,) float64 seconds of the video at which frame k is shown: (start_frame + k) / fps."""
+        return (self.start_frame + np.arange(self.num_frames)) / self.fps
 
     @property
     def train_cameras(self) -> list[int]:
@@ -96,6 +100,17 @@ class Dataset:
     def image(self, camera_index: int, frame_index: int) -> np.ndarray:
         """(H, W, 3) float32 RGB in [0, 1]: `frame` / 255."""
         return self.frame(camera_index, frame_index).astype(np.float32) / 255.0
+
+    def frame_range(self, start: int, count: int) -> "Dataset":
+        """A view of frames [start, start + count) (a time segment): same cameras and settings, the
+        frames array sliced without copying (a memmap stays a memmap); its frame k is frame start + k
+        here, and its start_frame is self.start_frame + start."""
+        if not (0 <= start and 0 < count and start + count <= self.num_frames):
+            raise IndexError(f"frames {start}..{start + count - 1} are not within 0..{self.num_frames - 1}")
+        view = copy.copy(self)
+        view.frames = self.frames[:, start:start + count]
+        view.start_frame = self.start_frame + int(start)
+        return view
 
     def __repr__(self) -> str:
         return (f"Dataset({self.path or '<memory>'}: {self.num_cameras} cameras x {self.num_frames} frames, "
