@@ -1,0 +1,86 @@
+#!/usr/bin/env python
+"""Compression presets on a trained model of the default synthetic scene: file size, ratio to the
+float32 file, Gaussians, held-out PSNR (runtime Player, cam00, every frame) and its change.
+
+    python bench/compress.py [--model MODEL.stg] [--data DIR] [--iterations N] [--out DIR] [--threads 2]
+
+Without --model it generates the demo scene (12 cameras x 30 frames, 160x120) into --data and trains
+the demo's full model for --iterations steps (the demo's settings otherwise). The float32 file is the
+model written as the trainer writes it (float32, zlib level 6). Each preset runs twice: with the
+dataset (the error budget from held-out views and the model's PSNR there) and without (the file's
+cameras, model PSNR assumed 33 dB), as `stg-convert compress` with and without --data.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import stg_train  # noqa: F401  (first: it configures OpenMP before torch loads)
+from stg_runtime import format as stg_format
+from stg_runtime.player import Player
+from stg_train.cli import DEMO_DEFAULTS, DEMO_TRAINING
+from stg_train.convert.compress import PRESETS, compress_file
+from stg_train.data import load_n3v
+from stg_train.metrics import evaluate_player
+from stg_train.synthetic import SyntheticScene, write_n3v
+
+
+def train(ds, out: Path, iterations: int, threads: int) -> Path:
+    import torch
+
+    from stg_train.export import export_trainer
+    from stg_train.trainer import Trainer, TrainConfig
+
+    torch.set_num_threads(threads)
+    cfg = TrainConfig(**{**DEMO_TRAINING, "iterations": iterations})
+    trainer = Trainer(ds, cfg)
+    trainer.train(progress=True)
+    print(f"trained {iterations} steps in {trainer.seconds:.0f} s: {trainer.params.count} Gaussians", flush=True)
+    return export_trainer(trainer, out / "model.stg", check=False).path
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--model", help="a trained .stg model of --data (default: train one)")
+    ap.add_argument("--data", default=os.path.join(tempfile.gettempdir(), "stg-bench-scene"))
+    ap.add_argument("--iterations", type=int, default=600, help="training steps when training (default 600)")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--out", default=None, help="where the compressed files go (default: a temp folder)")
+    args = ap.parse_args()
+    d = DEMO_DEFAULTS
+    data = Path(args.data)
+    if not (data / "poses_bounds.npy").exists():
+        write_n3v(data, SyntheticScene(seed=0, duration=d["frames"] / d["fps"]), num_cameras=d["cameras"],
+                  num_frames=d["frames"], fps=d["fps"], width=d["width"], height=d["height"])
+    ds = load_n3v(data, prefer_png=True)
+    out = Path(args.out or tempfile.mkdtemp(prefix="stg-bench-compress-"))
+    out.mkdir(parents=True, exist_ok=True)
+    model_path = Path(args.model) if args.model else train(ds, out, args.iterations, args.threads)
+    model = stg_format.load(model_path)
+    f32 = len(stg_format.dumps(model))
+    base = evaluate_player(Player(model, device="cpu"), ds)["psnr"]
+    print(f"{model_path}: {model.kind} model, {sum(s.count for s in model.segments)} Gaussians, "
+          f"float32 file {f32} bytes, held-out PSNR {base:.2f} dB ({ds})", flush=True)
+    rows = [("float32 (trainer)", f32, sum(s.count for s in model.segments), base, 0.0, 0.0)]
+    runs = [(preset, True) for preset in PRESETS] + [(preset, False) for preset in PRESETS if preset != "lossless"]
+    for preset, with_data in runs:
+        name = preset if with_data else f"{preset}, no --data"
+        path = out / f"model.{preset}{'' if with_data else '.nodata'}.stg"
+        start = time.perf_counter()
+        report = compress_file(model_path, path, preset, dataset=ds if with_data else None)
+        seconds = time.perf_counter() - start
+        print(report.format(), flush=True)
+        psnr = evaluate_player(Player(path, device="cpu"), ds)["psnr"]
+        rows.append((name, report.file_after, report.gaussians_after, psnr, psnr - base, seconds))
+    print("\n| preset | file bytes | ratio to float32 | Gaussians | held-out PSNR | PSNR change | compress time |")
+    print("|---|---|---|---|---|---|---|")
+    for name, size, count, psnr, change, seconds in rows:
+        print(f"| {name} | {size:,} | {size / f32:.3f} (1/{f32 / size:.1f}) | {count:,} | {psnr:.2f} dB | "
+              f"{change:+.3f} dB | {seconds:.0f} s |")
+
+
+if __name__ == "__main__":
+    main()

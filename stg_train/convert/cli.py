@@ -1,0 +1,274 @@
+"""`stg-convert`: compress models, import other tools' models, export snapshots, merge segments.
+
+A thin command line over stg_train.convert.{compress, reference, gaussians3d, merge}. Every problem
+with an input prints `stg-convert: error: <file>: <problem>` and exits with code 2; outputs are written
+atomically, so a failed run leaves no output file behind.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+PROG = "stg-convert"
+
+EPILOG = """examples:
+  stg-convert compress run/model.stg run/model.small.stg --preset small
+  stg-convert compress model.stg out.stg --preset balanced --encoding position=u16,features=u8 --data scene/
+  stg-convert import-reference seg0/point_cloud.ply seg1/point_cloud.ply out.stg \\
+      --decoder seg0/decoder.pth seg1/decoder.pth --fps 30
+  stg-convert import-3dgs point_cloud.ply scene.stg
+  stg-convert export-ply model.stg snapshot.ply --time 1.5
+  stg-convert merge part0.stg part1.stg whole.stg
+
+Exit codes: 0 done, 2 bad input or arguments (nothing written)."""
+
+COMPRESS_EPILOG = """presets (the options below override them):
+  lossless  float32, no pruning, original order, zlib level 9 (the same model, a slightly smaller file)
+  balanced  target: <= 1/4 of the float32 file, <= 0.1 dB PSNR loss. Drops Gaussians whose peak
+            opacity stays below 1/255 (never drawn) or that no camera of the file sees, Morton order,
+            per attribute the cheapest encoding (u8, u16, f16, f32) within the error budget
+  small     target: <= 1/8 of the float32 file, <= 0.5 dB loss; also drops peak opacity < 0.01
+
+The error budget is measured by rendering: the file's cameras at the first, middle and last frame of
+each segment, or with --data the dataset's held-out camera against its ground truth. The report lists
+Gaussians and bytes per attribute before and after, and the PSNR change."""
+
+
+def _error(message: str) -> int:
+    print(f"{PROG}: error: {message}", file=sys.stderr)
+    return 2
+
+
+def _file_error(path, e: OSError) -> str:
+    return f"{e.filename or path}: {e.strerror or e}"
+
+
+def _writable(path) -> str:
+    """`path` if its folder exists (checked before any work); ValueError naming it otherwise."""
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        raise ValueError(f"{path}: cannot write: the folder {folder} does not exist")
+    return path
+
+
+def _level(text: str) -> int:
+    value = int(text)
+    if not 0 <= value <= 9:
+        raise argparse.ArgumentTypeError(f"zlib level must be 0-9, got {text!r}")
+    return value
+
+
+def _fraction(text: str) -> float:
+    value = float(text)
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"must be in [0, 1], got {text!r}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be positive, got {text!r}")
+    return value
+
+
+def _frames(text: str) -> list[int]:
+    try:
+        values = [int(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a frame count or a comma-separated list, got {text!r}") from None
+    if min(values) <= 0:
+        raise argparse.ArgumentTypeError(f"frame counts must be positive, got {text!r}")
+    return values
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from stg_runtime.model import ACTIVATIONS, ATTRIBUTES
+
+    from .compress import PRESETS
+
+    fmt = argparse.RawDescriptionHelpFormatter
+    p = argparse.ArgumentParser(prog=PROG, epilog=EPILOG, formatter_class=fmt,
+                                description="Shrink .stg models, bring models from other tools into the "
+                                            ".stg format, export static snapshots, merge segments.")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    c = sub.add_parser("compress", help="prune, reorder and quantize a model; prints a report",
+                       description="Write a smaller copy of a .stg model and print what changed.",
+                       epilog=COMPRESS_EPILOG, formatter_class=fmt)
+    c.add_argument("input", metavar="IN.stg")
+    c.add_argument("output", metavar="OUT.stg")
+    c.add_argument("--preset", choices=list(PRESETS), default="balanced", help="default %(default)s")
+    c.add_argument("--encoding", action="append", default=[], metavar="ATTR=MODE",
+                   help=f"fix an attribute's encoding, MODE one of f32, f16, u16, u8; ATTR one of "
+                        f"{', '.join(ATTRIBUTES)}; repeat or separate with commas (position=u16,features=u8)")
+    c.add_argument("--prune-opacity", type=_fraction, default=None, metavar="X",
+                   help="drop Gaussians whose peak opacity over their segment stays below X (0: keep all)")
+    c.add_argument("--prune-unseen", action=argparse.BooleanOptionalAction, default=None,
+                   help="drop Gaussians that no camera stored in the file sees at any frame")
+    c.add_argument("--order", choices=["morton", "none"], default=None,
+                   help="order of the Gaussians in the file: morton (Z-order of positions, compresses "
+                        "better) or none (keep)")
+    c.add_argument("--level", type=_level, default=None, metavar="N", help="zlib level 0-9 (presets: 9)")
+    c.add_argument("--data", metavar="DATASET",
+                   help="dataset folder (N3V layout) the model was trained on: measure the PSNR change "
+                        "on its held-out camera against the ground truth")
+    c.add_argument("--downscale", type=int, default=1, metavar="K",
+                   help="with --data: divide the frames' size by K, as in training (default 1)")
+
+    r = sub.add_parser("import-reference", formatter_class=fmt,
+                       help="import models of the paper's reference implementation (PLY + decoder)",
+                       description="Convert the reference implementation's trained models (one PLY per "
+                                   "segment, in time order, and for full models the decoder state dict "
+                                   "of each) into one .stg file. The reference's time t = frame / 50 is "
+                                   "mapped to ours (frame / segment frames).")
+    r.add_argument("inputs", nargs="+", metavar="PLY", help="the segments' PLYs, in time order")
+    r.add_argument("output", metavar="OUT.stg")
+    r.add_argument("--decoder", nargs="+", default=None, metavar="PT",
+                   help="decoder state dict (torch, read with weights_only) of each PLY, same order, "
+                        "after the files; full models only (reading needs torch)")
+    r.add_argument("--fps", type=_positive_float, default=30.0, help="frames per second (default %(default)s)")
+    r.add_argument("--start-frame", type=int, default=0, metavar="N",
+                   help="video frame of the first segment's first frame (default 0)")
+    r.add_argument("--segment-frames", type=_frames, default=[50], metavar="F[,F...]",
+                   help="frames per segment: one count for all, or one per PLY (e.g. 50,50,20; default 50)")
+    r.add_argument("--activation", choices=list(ACTIVATIONS), default="sigmoid",
+                   help="decoder output activation: sigmoid (N3V), clamp (Technicolor), identity (Google "
+                        "Immersive); default %(default)s")
+
+    g = sub.add_parser("import-3dgs", help="import a static 3D Gaussian Splatting PLY (INRIA layout)",
+                       description="Convert a static 3DGS PLY (x y z nx ny nz f_dc_0..2 f_rest_* opacity "
+                                   "scale_0..2 rot_0..3) into a .stg model with spherical-harmonics colour, "
+                                   "no motion and constant opacity.")
+    g.add_argument("input", metavar="PLY")
+    g.add_argument("output", metavar="OUT.stg")
+    g.add_argument("--fps", type=_positive_float, default=30.0, help="frames per second (default %(default)s)")
+    g.add_argument("--frames", type=int, default=1, metavar="N", help="frames the static model covers (default 1)")
+    g.add_argument("--cameras", metavar="JSON",
+                   help="3DGS cameras.json to store as the model's cameras (default: the one of the 3DGS "
+                        "output folder, when found)")
+
+    e = sub.add_parser("export-ply", help="write a static snapshot at one time as a 3DGS PLY",
+                       description="Evaluate the model at --time and write the Gaussians as a 3DGS PLY "
+                                   "(INRIA layout) for existing 3DGS viewers.")
+    e.add_argument("input", metavar="IN.stg")
+    e.add_argument("output", metavar="OUT.ply")
+    e.add_argument("--time", type=float, required=True, metavar="SECONDS", help="time of the snapshot")
+
+    m = sub.add_parser("merge", help="join files whose segments follow each other",
+                       description="Join .stg files holding consecutive segments (same kind and fps, no "
+                                   "gaps or overlaps) into one multi-segment file.")
+    m.add_argument("inputs", nargs="+", metavar="IN.stg", help="files to join (any order)")
+    m.add_argument("output", metavar="OUT.stg")
+    return p
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    from stg_runtime.format import FormatError
+
+    from stg_train.data import DataError
+
+    from .ply import PLYError
+
+    handlers = {"compress": _compress, "import-reference": _import_reference, "import-3dgs": _import_3dgs,
+                "export-ply": _export_ply, "merge": _merge}
+    try:
+        return handlers[args.command](args, parser)
+    except (FormatError, PLYError, DataError, ValueError) as e:
+        return _error(str(e))
+    except OSError as e:
+        return _error(_file_error("", e))
+
+
+def _compress(args, parser) -> int:
+    from .compress import compress_file, parse_encodings
+
+    _writable(args.output)
+    encodings = {}
+    for text in args.encoding:
+        try:
+            encodings.update(parse_encodings(text))
+        except ValueError as e:
+            return _error(f"--encoding: {e}")
+    overrides = {"encodings": encodings}
+    if args.prune_opacity is not None:
+        overrides["prune_opacity"] = args.prune_opacity or None
+    if args.prune_unseen is not None:
+        overrides["prune_unseen"] = args.prune_unseen
+    if args.order is not None:
+        overrides["order"] = None if args.order == "none" else args.order
+    if args.level is not None:
+        overrides["level"] = args.level
+    dataset = None
+    if args.data:
+        from stg_train.cli import load_dataset
+
+        dataset = load_dataset(args.data, downscale=args.downscale, quiet=True)
+    report = compress_file(args.input, args.output, args.preset, dataset=dataset, **overrides)
+    print(report.format())
+    print(f"wrote {args.output}")
+    return 0
+
+
+def _import_reference(args, parser) -> int:
+    from stg_runtime import format as stg_format
+
+    from .reference import import_reference
+
+    plys, out = args.inputs, _writable(args.output)
+    frames = args.segment_frames[0] if len(args.segment_frames) == 1 else args.segment_frames
+    model = import_reference(plys, args.decoder, fps=args.fps, start_frame=args.start_frame,
+                             segment_frames=frames, activation=args.activation)
+    stg_format.save(model, out)
+    count = sum(s.count for s in model.segments)
+    print(f"wrote {out}: {model.kind} model, {len(model.segments)} segment(s), {model.num_frames} frames at "
+          f"{model.fps:g} fps, {count} Gaussians")
+    return 0
+
+
+def _import_3dgs(args, parser) -> int:
+    from stg_runtime import format as stg_format
+
+    from .gaussians3d import import_3dgs_ply
+
+    if args.frames <= 0:
+        parser.error("--frames must be positive")
+    _writable(args.output)
+    model = import_3dgs_ply(args.input, fps=args.fps, num_frames=args.frames, cameras=args.cameras)
+    stg_format.save(model, args.output)
+    print(f"wrote {args.output}: {model.segments[0].count} Gaussians, {len(model.cameras)} cameras")
+    return 0
+
+
+def _export_ply(args, parser) -> int:
+    from stg_runtime import format as stg_format
+
+    from .gaussians3d import export_ply
+
+    _writable(args.output)
+    model = stg_format.load(args.input)
+    try:
+        count = export_ply(model, args.output, args.time)
+    except ValueError as e:
+        if str(e).startswith("t ="):
+            return _error(f"{args.input}: --time {args.time}: {e}")
+        raise
+    print(f"wrote {args.output}: {count} Gaussians at t = {args.time:g} s")
+    return 0
+
+
+def _merge(args, parser) -> int:
+    from .merge import merge_files
+
+    inputs, out = args.inputs, _writable(args.output)
+    model = merge_files(inputs, out)
+    print(f"wrote {out}: {len(model.segments)} segments, {model.num_frames} frames, "
+          f"{sum(s.count for s in model.segments)} Gaussians")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
