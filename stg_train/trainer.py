@@ -27,9 +27,11 @@ from torch import Tensor
 from stg_runtime.camera import Camera
 from stg_runtime.progress import Progress
 
-from .params import LearningRates, STGParams, extent_of, position_lr, sample_view_volume, view_inputs
+from .data.sfm import initial_points
+from .params import LearningRates, STGParams, extent_of, position_lr, view_inputs
 from .splat import rasterize
-from .strategy import DensityControl, Schedule, Thresholds
+from .guided import GuidedSampling
+from .strategy import DensityControl, Schedule, StepContext, Thresholds
 
 CHECKPOINT_VERSION = 1
 
@@ -39,12 +41,18 @@ class TrainConfig:
     """Settings of a run (stored in checkpoints and in the exported file's provenance).
 
     model: "full" (9 features + decoder) or "lite" (rgb); iterations: optimisation steps; batch: views
-    per step (one shared time); num_points: initial Gaussians; depth_candidates: photo-consistency depth
-    search of the initial points (0: uniform depths; see params.sample_view_volume); static: freeze the
+    per step (one shared time); num_points: initial Gaussians (the most SfM points kept); init: where the
+    initial points come from, "sfm" (stg_train.data.sfm on every init_every-th frame, falling back to the
+    view volume when SfM finds too few) or "volume" (params.sample_view_volume); depth_candidates:
+    photo-consistency depth search of the view-volume points (0: uniform depths; see
+    params.sample_view_volume); static: freeze the
     time terms (ablation); lr_scale: multiplies every reference learning rate; schedule: Schedule field overrides (iterations
     of this run) on top of the reference schedule stretched to `iterations`; thresholds: Thresholds
     field overrides; seed: numpy / torch / python seeds; device: "cpu" or "cuda"; splatter: the
-    rasteriser backend, "torch" or "gsplat" (stg_train.splat.rasterize).
+    rasteriser backend, "torch" or "gsplat" (stg_train.splat.rasterize); guided: guided sampling of
+    Gaussians in high-error patches (stg_train.guided, the paper's Sec. 4.4); frozen: time components
+    switched off for ablations (params.COMPONENTS: "temporal_opacity", "motion", "rotation",
+    "time_features"; `static` freezes them all).
     """
 
     model: str = "full"
@@ -52,6 +60,8 @@ class TrainConfig:
     batch: int = 2
     num_points: int = 20000
     depth_candidates: int = 64
+    init: str = "volume"
+    init_every: int = 1
     static: bool = False
     lr_scale: float = 1.0
     schedule: dict = field(default_factory=dict)
@@ -60,6 +70,8 @@ class TrainConfig:
     device: str = "cpu"
     checkpoint_every: int = 500
     splatter: str = "torch"
+    guided: bool = True
+    frozen: tuple = ()
 
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":
@@ -100,10 +112,12 @@ class Trainer:
     """Trains STGParams on a Dataset (stg_train.data.Dataset).
 
     out_dir: where checkpoint.pt goes (None: no checkpoints). Build a fresh run with Trainer(dataset,
-    config, out_dir) or continue one with Trainer.resume(dataset, checkpoint_path).
+    config, out_dir) or continue one with Trainer.resume(dataset, checkpoint_path). init_progress(done, total):
+    called per frame while SfM computes the initial points (config.init "sfm", not when cached).
     """
 
-    def __init__(self, dataset, config: TrainConfig, out_dir=None, _state: dict | None = None):
+    def __init__(self, dataset, config: TrainConfig, out_dir=None, _state: dict | None = None,
+                 init_progress: Callable[[int, int], None] | None = None):
         self.dataset, self.config = dataset, config
         self.out_dir = None if out_dir is None else Path(out_dir)
         self.device = torch.device(config.device)
@@ -116,10 +130,11 @@ class Trainer:
             random.seed(config.seed)
             torch.manual_seed(config.seed)
             self.rng = np.random.default_rng(config.seed)
-            xyz, rgb, t_center = sample_view_volume(dataset, config.num_points, self.rng,
-                                                         depth_candidates=config.depth_candidates)
+            xyz, rgb, t_center = initial_points(dataset, config.init, config.num_points, self.rng,
+                                                every=config.init_every, depth_candidates=config.depth_candidates,
+                                                progress=init_progress)
             self.params = STGParams.from_points(xyz, rgb, t_center, config.model, config.static,
-                                                self.device, seed=config.seed)
+                                                self.device, seed=config.seed, frozen=config.frozen)
             self.box = np.stack([xyz.min(0), xyz.max(0)])
             self.step = 0
         else:
@@ -129,6 +144,8 @@ class Trainer:
             self.rng = np.random.default_rng()
         self.optimizer = torch.optim.Adam(self.params.param_groups(self.lr, self.extent), eps=1e-15)
         self.strategies = [DensityControl(self.schedule, self.extent, self.thresholds, box=self.box)]
+        if config.guided:
+            self.strategies.append(GuidedSampling(self.schedule))
         self.history: list[dict] = []  # per-step figures: step, loss, psnr, gaussians, seconds
         self.seconds = 0.0  # training time so far (excluding checkpoints and callbacks)
         if _state is not None:
@@ -186,8 +203,13 @@ class Trainer:
         loss.backward()
         with torch.no_grad():
             mse = ((img.detach() - gt) ** 2).mean().item()
+        context = StepContext(ds, frame, tau, lambda ci, t: self.render(ds.cameras[ci], t, rays=self.rays(ci)),
+                              self.ground_truth)
         for strategy in self.strategies:
-            strategy.step_post_backward(self.params, self.optimizer, renders, self.step)
+            if getattr(strategy, "wants_context", False):
+                strategy.step_post_backward(self.params, self.optimizer, renders, self.step, context=context)
+            else:
+                strategy.step_post_backward(self.params, self.optimizer, renders, self.step)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         return {"loss": loss.item(), "psnr": -10 * math.log10(max(mse, 1e-12))}
