@@ -190,7 +190,12 @@ def save(model: Model, path, encodings: dict[str, str] | None = None, codec: str
     model.provenance. Raises ValueError (naming the attribute) for values the encoding cannot hold;
     on any error nothing is left at a new path.
     """
-    payload = dumps(model, encodings, codec, level, provenance)
+    write_atomic(path, dumps(model, encodings, codec, level, provenance))
+
+
+def write_atomic(path, payload: bytes) -> None:
+    """Write `payload` to `path` through a new temporary file in the same directory (fsync, then rename):
+    readers see the old file or the whole new one, and a failure leaves no file behind."""
     path = os.fspath(path)
     tmp = f"{path}.{secrets.token_hex(4)}.tmp"
     try:

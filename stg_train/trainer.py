@@ -45,11 +45,11 @@ class TrainConfig:
     initial points come from, "sfm" (stg_train.data.sfm on every init_every-th frame, falling back to the
     view volume when SfM finds too few) or "volume" (params.sample_view_volume); depth_candidates:
     photo-consistency depth search of the view-volume points (0: uniform depths; see
-    params.sample_view_volume); static: freeze the
-    time terms (ablation); lr_scale: multiplies every reference learning rate; schedule: Schedule field overrides (iterations
-    of this run) on top of the reference schedule stretched to `iterations`; thresholds: Thresholds
-    field overrides; seed: numpy / torch / python seeds; device: "cpu" or "cuda"; splatter: the
-    rasteriser backend, "torch" or "gsplat" (stg_train.splat.rasterize); guided: guided sampling of
+    params.sample_view_volume); static: freeze the time terms (ablation); lr_scale: multiplies every
+    reference learning rate; schedule: Schedule field overrides (iterations of this run) on top of the
+    reference schedule stretched to `iterations`; thresholds: Thresholds field overrides; seed: numpy /
+    torch / python seeds; device: "cpu" or "cuda"; splatter: the rasteriser backend, "torch" or "gsplat"
+    (stg_train.splat.rasterize); guided: guided sampling of
     Gaussians in high-error patches (stg_train.guided, the paper's Sec. 4.4); frozen: time components
     switched off for ablations (params.COMPONENTS: "temporal_opacity", "motion", "rotation",
     "time_features"; `static` freezes them all).

@@ -7,9 +7,10 @@ PLYError, whose message starts with the file's name.
 from __future__ import annotations
 
 import os
-import secrets
 
 import numpy as np
+
+from stg_runtime.format import write_atomic
 
 #: PLY scalar type names (both spellings) -> numpy dtype.
 TYPES = {
@@ -197,19 +198,5 @@ def write_ply(path, properties: dict[str, np.ndarray], fmt: str = "binary_little
         for p, a in columns.items():
             table[p] = a
         payload += table.tobytes()
-    _write_atomic(os.fspath(path), payload)
+    write_atomic(path, payload)
 
-
-def _write_atomic(path: str, payload: bytes) -> None:
-    tmp = f"{path}.{secrets.token_hex(4)}.tmp"
-    try:
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
-        with open(fd, "wb") as f:
-            f.write(payload)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
