@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import warnings
 
 PROG = "stg-convert"
 
@@ -251,7 +252,11 @@ def _export_ply(args, parser) -> int:
     _writable(args.output)
     model = stg_format.load(args.input)
     try:
-        count = export_ply(model, args.output, args.time)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            count = export_ply(model, args.output, args.time)
+        for w in caught:
+            print(f"stg-convert: warning: {w.message}", file=sys.stderr)
     except ValueError as e:
         if str(e).startswith("t ="):
             return _error(f"{args.input}: --time {args.time}: {e}")
