@@ -3,6 +3,11 @@
 breakdown (time evaluation, splatting, decoder), beside the float64 numpy reference splatter.
 
     python bench/render.py [--gaussians 100000] [--size 640x360] [--repeats 20] [--threads N]
+    python bench/render.py --device cuda [--gaussians 200000] [--size 1352x1014]
+
+--device cuda times the numba.cuda path (stg_runtime.splat_cuda: Player(device="cuda") with
+render(out="device"), i.e. without the copy to the host) and its steps, and gsplat's rasterization of
+the same Gaussians where gsplat and torch with CUDA are installed. It needs a real GPU.
 
 Scenes come from stg_runtime.demo.random_model: Gaussians uniform in the volume of a 60-degree frustum
 between depths 2 and 10, projected 3-sigma radius log-uniform in --radius pixels (default 0.5..10,
@@ -39,6 +44,70 @@ def median_seconds(fn, repeats: int) -> float:
     return float(np.median(times))
 
 
+def cuda_main(args) -> None:
+    """The GPU benchmark (--device cuda): FPS of Player(device="cuda"), breakdown, gsplat beside it."""
+    from stg_runtime import splat_cuda
+    if not splat_cuda.gpu_available():
+        raise SystemExit("bench/render.py --device cuda: numba sees no CUDA GPU here"
+                         + (" (NUMBA_ENABLE_CUDASIM=1 is set: the simulator cannot be timed)"
+                            if splat_cuda.simulated() else "") + "; run it on a machine with an NVIDIA GPU")
+    from numba import cuda
+
+    from stg_runtime.timeeval_cuda import DeviceSegment
+
+    def gpu_seconds(fn, repeats):
+        return median_seconds(lambda: (fn(), cuda.synchronize()), repeats)
+
+    w, h = (int(v) for v in args.size.lower().split("x"))
+    name = cuda.get_current_device().name
+    print(f"GPU: {name.decode() if isinstance(name, bytes) else name}; "
+          f"numba {numba.__version__}; device sort: {'CuPy' if splat_cuda._cupy() is not None else 'numba bitonic'}")
+    print(f"{args.gaussians} Gaussians at {w}x{h}, median of {args.repeats} renders (output left on the GPU)\n")
+    print(f"{'model':<8}{'FPS':>8}{'ms/frame':>10}{'eval ms':>9}{'splat ms':>10}{'decode ms':>11}{'gsplat ms':>11}")
+    radius_px = tuple(float(v) for v in args.radius.split(","))
+    for kind in ("lite", "full"):
+        model = random_model(args.gaussians, kind, width=w, height=h, radius_px=radius_px)
+        player = Player(model, device="cuda")
+        cam, seg = model.cameras[0], model.segments[0]
+        ts = iter(np.linspace(0, player.duration, 2 * args.repeats + 2))
+        total = gpu_seconds(lambda: player.render(cam, next(ts), out="device"), args.repeats)
+        dseg = DeviceSegment(seg)
+        t_eval = gpu_seconds(lambda: dseg.evaluate(0.5), args.repeats)
+        g = dseg.evaluate(0.5)
+        t_splat = gpu_seconds(lambda: splat_cuda.rasterize(*g, cam, out="device"), args.repeats)
+        t_dec = 0.0
+        if kind == "full":
+            feats = splat_cuda.rasterize(*g, cam, out="device")[0]
+            fused = splat_cuda.FusedDecoder.from_onnx(seg.decoder, seg.activation)
+            t_dec = gpu_seconds(lambda: fused(feats, cam), args.repeats)
+        t_gsplat = _gsplat_seconds([a.copy_to_host() for a in g], cam, args.repeats)
+        gs = f"{1000 * t_gsplat:>11.2f}" if t_gsplat else f"{'n/a':>11}"
+        print(f"{kind:<8}{1 / total:>8.1f}{1000 * total:>10.2f}{1000 * t_eval:>9.2f}{1000 * t_splat:>10.2f}"
+              f"{1000 * t_dec:>11.2f}{gs}")
+
+
+def _gsplat_seconds(arrays, camera, repeats) -> float | None:
+    """Median seconds of gsplat's rasterization of the same Gaussians (opacity-culled as ours), or None
+    (with the reason printed) when gsplat or torch with CUDA is missing."""
+    try:
+        from stg_train.splat_gsplat import rasterize_gsplat, unavailable_reason  # before torch (stg_train's rule)
+        import torch
+    except ImportError as e:
+        print(f"(gsplat skipped: {e})")
+        return None
+    reason = unavailable_reason("cuda")
+    if reason:
+        print(f"(gsplat skipped: {reason})")
+        return None
+    tensors = [torch.as_tensor(a, device="cuda") for a in arrays]
+
+    def run():
+        with torch.no_grad():
+            rasterize_gsplat(*tensors, camera)
+        torch.cuda.synchronize()
+    return median_seconds(run, repeats)
+
+
 def layers(g, camera) -> float:
     """Mean number of 1-sigma ellipses (2D covariance with blur) over a pixel."""
     p = project_reference(g.means, g.quats, g.scales, camera)
@@ -56,7 +125,11 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=0, help="numba threads (default: numba's default)")
     ap.add_argument("--reference-size", default="64x48", help="WxH for the numpy reference")
     ap.add_argument("--reference-gaussians", type=int, default=2000)
+    ap.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
+                    help="cuda: time the numba.cuda path on the GPU (needs a real GPU)")
     args = ap.parse_args()
+    if args.device == "cuda":
+        return cuda_main(args)
     if args.threads:
         numba.set_num_threads(args.threads)
     w, h = (int(v) for v in args.size.lower().split("x"))

@@ -32,25 +32,33 @@ class Rendered(NamedTuple):
 
 
 def _resolve_device(device: str) -> str:
+    """"cpu", or "cuda" (numba.cuda kernels: a real GPU, or numba's simulator when NUMBA_ENABLE_CUDASIM=1);
+    "auto" is "cuda" only when numba sees a real GPU, never the simulator."""
     if device not in DEVICES:
         raise ValueError(f"device must be one of {DEVICES}, got {device!r}")
+    if device == "cpu":
+        return "cpu"
+    from . import splat_cuda  # numba.cuda is imported only when a GPU is asked about
     if device == "cuda":
-        raise ValueError("device 'cuda': this version of stg_runtime renders on the CPU only; "
-                         "use device='cpu' or 'auto'")
-    return "cpu"
+        splat_cuda.require()
+        return "cuda"
+    return "cuda" if splat_cuda.gpu_available() else "cpu"
 
 
 class Player:
     """Plays a Spacetime Gaussian model.
 
-    source: path of a `.stg` file, or a `Model`. device: "cpu", or "auto" (the best available).
-    Times are in seconds of the video (frame k is shown at k / fps).
+    source: path of a `.stg` file, or a `Model`. device: "cpu", "cuda" (numba.cuda kernels, see
+    stg_runtime.splat_cuda; RuntimeError when numba sees no GPU) or "auto" ("cuda" when numba sees a GPU,
+    else "cpu"). Times are in seconds of the video (frame k is shown at k / fps).
     """
 
     def __init__(self, source: str | Path | Model, device: str = "auto"):
         self.device = _resolve_device(device)
         self.model = source if isinstance(source, Model) else stg_format.load(source)
         self._decoders: dict[int, Decoder] = {}
+        self._fused: dict[int, object] = {}  # device "cuda": per segment, its FusedDecoder or None
+        self._device_segments: dict[int, object] = {}  # device "cuda": per segment, its DeviceSegment
 
     # -- what the model covers -----------------------------------------------------------------
     @property
@@ -85,20 +93,27 @@ class Player:
         return (self.model.start_frame + np.arange(self.num_frames)) / self.fps
 
     # -- rendering -------------------------------------------------------------------------------
-    def render(self, camera: Camera, t: float) -> np.ndarray:
-        """(H, W, 3) float32 rgb in [0, 1] seen by `camera` at time `t` seconds."""
-        return self.render_all(camera, t).rgb
+    def render(self, camera: Camera, t: float, out: str = "host") -> np.ndarray:
+        """(H, W, 3) float32 rgb in [0, 1] seen by `camera` at time `t` seconds. out="device" (device
+        "cuda" only) returns it as a numba device array, left on the GPU."""
+        return self.render_all(camera, t, out=out).rgb
 
     def render_frame(self, camera: Camera, frame: int) -> np.ndarray:
         """Like render, at the time of frame index `frame` of the video."""
         return self.render(camera, frame / self.fps)
 
-    def render_all(self, camera: Camera, t: float) -> Rendered:
-        """rgb plus the splatted features, alpha and depth."""
+    def render_all(self, camera: Camera, t: float, out: str = "host") -> Rendered:
+        """rgb plus the splatted features, alpha and depth (numba device arrays with out="device")."""
+        if out not in ("host", "device"):
+            raise ValueError(f"out must be 'host' or 'device', got {out!r}")
+        if out == "device" and self.device != "cuda":
+            raise ValueError(f"out='device' needs device 'cuda', this player renders on {self.device!r}")
         end = self.start_time + self.duration
         if not (self.start_time - 1e-9 <= t <= end + 1e-9):
             raise ValueError(f"t = {t} s is outside the model's time span [{self.start_time}, {end}] s")
         segment, tau = self.model.segment_at(t)
+        if self.device == "cuda":
+            return self._render_cuda(segment, tau, camera, out)
         g = evaluate(segment, tau)
         splatted = g.features
         if self.model.kind == "sh":  # colour per Gaussian for this view, before splatting (as 3DGS does)
@@ -109,6 +124,40 @@ class Player:
         else:
             rgb = self._decoder(segment)(features, camera)
         return Rendered(np.ascontiguousarray(rgb, dtype=np.float32), features, alpha, depth)
+
+    def _render_cuda(self, segment: Segment, tau: float, camera: Camera, out: str) -> Rendered:
+        """Time evaluation, splatting and colour with the numba.cuda kernels, on segments uploaded once.
+        The colour of full models is the fused decoder, except for decoder graphs other than
+        12 -> 6 -> 3 MatMul/Relu (onnxruntime on the host). "sh" models evaluate time and their
+        per-Gaussian colours on the host (stg_runtime.timeeval, stg_runtime.sh), then upload them."""
+        from . import splat_cuda
+        if self.model.kind == "sh":
+            g = evaluate(segment, tau)
+            gaussians = (g.means, g.quats, g.scales, g.opacities, sh_colours(g.features, g.means, camera.center))
+        else:
+            from .timeeval_cuda import DeviceSegment
+            key = id(segment)
+            if key not in self._device_segments:
+                self._device_segments[key] = DeviceSegment(segment)
+            gaussians = self._device_segments[key].evaluate(tau)
+        features, alpha, depth = splat_cuda.rasterize(*gaussians, camera, out="device")
+        if self.model.kind in ("lite", "sh"):
+            rgb = splat_cuda.lite_colour(features)
+        else:
+            key = id(segment)
+            if key not in self._fused:
+                self._fused[key] = splat_cuda.FusedDecoder.from_onnx(segment.decoder, segment.activation)
+            fused = self._fused[key]
+            if fused is not None:
+                rgb = fused(features, camera)
+            else:
+                rgb = np.ascontiguousarray(self._decoder(segment)(features.copy_to_host(), camera), np.float32)
+                if out == "device":
+                    rgb = splat_cuda.cuda.to_device(rgb)
+        if out == "device":
+            return Rendered(rgb, features, alpha, depth)
+        host = lambda a: a if isinstance(a, np.ndarray) else a.copy_to_host()  # noqa: E731
+        return Rendered(host(rgb), host(features), host(alpha), host(depth))
 
     def _decoder(self, segment: Segment) -> Decoder:
         key = id(segment)

@@ -1,0 +1,598 @@
+"""GPU splatter (numba.cuda): the rules of formats/stg-v1.md, section 3, with splat_cpu's contract.
+
+    rasterize(means, quats, scales, opacities, features, camera, *, tile_size=16, out="host")
+        -> features (H, W, C), alpha (H, W), depth (H, W), all float32
+
+Inputs may be host (numpy) or device arrays; with out="device" the results stay on the device. The
+pipeline (everything stays on the device between kernels, except where said):
+
+1. _project (one thread per Gaussian): as splat_cpu._project, in float64: camera-space depth, the EWA
+   2D covariance and conic, the 3-sigma radius, and the rectangle of pixel centres within the radius
+   that can reach alpha >= 1/255, clipped to the image; a record of 7 float32 (mean u, v, conic A/2,
+   B, C/2, opacity, z), the rectangle (4 int32) and the number of tiles it meets (0: culled).
+2. Depth order: the kept Gaussians sorted by (depth, index), and the exclusive prefix sum of their
+   tile counts in that order. With CuPy installed (and a real GPU): cupy.argsort (stable) and
+   cupy.cumsum. Without CuPy: a bitonic sort of the (depth, index) pairs (culled Gaussians and the
+   padding to a power of two sort last) and a Hillis-Steele scan, numba.cuda kernels, one launch per
+   step (O(n log^2 n) work: fine for tests and moderate sizes; install CuPy for speed).
+3. _duplicate (one thread per rank): one 64-bit key per (tile, Gaussian) pair, tile * K + rank
+   (K the length of the order, rank the Gaussian's place in it); the keys are unique, and sorting
+   them (cupy.sort, or the bitonic sort) gives every tile's list front to back; _ranges finds each
+   tile's [start, end) and the Gaussian ids. Only the total pair count is copied to the host (to
+   allocate the keys).
+4. _composite (one block per tile, one thread per pixel): Gaussians are loaded in batches of one per
+   thread into shared memory and composited front to back with the spec's skip and stop rules in
+   float32 (as splat_cpu: the pixel rectangle is the footprint test). Features are accumulated in
+   registers, up to CHANNELS_PER_PASS channels per launch (more channels: more passes over the same
+   lists). A block ends once all its pixels have stopped (syncthreads_count).
+
+FusedDecoder: the full model's 12 -> 6 -> 3 MatMul/Relu decoder, evaluated per pixel on the device from
+the composited feature image (weights read by onnx_mlp.mlp_weights); lite_colour: the lite models'
+clamp, on the device. Time evaluation on the device: stg_runtime.timeeval_cuda.
+
+Under numba's simulator (NUMBA_ENABLE_CUDASIM=1, set before numba.cuda is first imported) the same
+kernels run on the CPU, slowly: the tests use it on tiny images.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import config as _numba_config
+from numba import cuda
+
+from .camera import Camera
+from .splat_reference import BLUR, MAX_ALPHA, MIN_ALPHA, NEAR, T_STOP
+
+_CUPY: list = []
+
+
+def _cupy():
+    """CuPy (the device sort and scan) when it imports and a real GPU is used, else None."""
+    if not _CUPY:
+        try:
+            import cupy  # type: ignore
+        except Exception:  # noqa: BLE001 (ImportError, or a CuPy without its CUDA libraries)
+            cupy = None
+        _CUPY.append(None if simulated() else cupy)
+    return _CUPY[0]
+
+#: Feature channels accumulated per compositing launch (registers per thread).
+CHANNELS_PER_PASS = 16
+#: Largest tile_size: a block has tile_size^2 threads, and its shared memory batch holds that many
+#: Gaussians (12 KiB at 16).
+MAX_TILE = 16
+_BATCH = MAX_TILE * MAX_TILE
+
+
+def _f32_at_least(x: float) -> np.float32:
+    v = np.float32(x)
+    return v if float(v) >= x else np.nextafter(v, np.float32(np.inf))
+
+
+MIN_ALPHA32 = _f32_at_least(MIN_ALPHA)
+T_STOP32 = _f32_at_least(T_STOP)
+MAX_ALPHA32 = np.float32(MAX_ALPHA)
+
+
+def simulated() -> bool:
+    """Whether numba.cuda is numba's CPU simulator (NUMBA_ENABLE_CUDASIM=1)."""
+    return bool(_numba_config.ENABLE_CUDASIM)
+
+
+_GPU: list = []
+
+
+def gpu_available() -> bool:
+    """Whether numba sees a real CUDA GPU (never true under the simulator); asked once per process."""
+    if simulated():
+        return False
+    if not _GPU:
+        try:
+            _GPU.append(bool(cuda.is_available()))
+        except Exception:  # noqa: BLE001 (a broken driver counts as no GPU)
+            _GPU.append(False)
+    return _GPU[0]
+
+
+def usable() -> bool:
+    """Whether the kernels can run here: a real GPU, or the simulator."""
+    return simulated() or gpu_available()
+
+
+def require() -> None:
+    """Raise RuntimeError, saying why, unless the kernels can run here."""
+    if not usable():
+        raise RuntimeError("device 'cuda': numba sees no CUDA GPU (no NVIDIA driver/GPU, or the CUDA "
+                           "toolkit is missing); use device='cpu', or set NUMBA_ENABLE_CUDASIM=1 before "
+                           "starting Python to run the GPU kernels in numba's (slow) CPU simulator")
+
+
+@cuda.jit
+def _project(means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, width, height, tile_size,
+             packed, rect, depth, counts):
+    i = cuda.grid(1)
+    if i >= means.shape[0]:
+        return
+    counts[i] = 0
+    tan_x = 0.3 * width / (2.0 * fx)
+    tan_y = 0.3 * height / (2.0 * fy)
+    wx = np.float64(means[i, 0])
+    wy = np.float64(means[i, 1])
+    wz = np.float64(means[i, 2])
+    x = Rc[0, 0] * wx + Rc[0, 1] * wy + Rc[0, 2] * wz + tc[0]
+    y = Rc[1, 0] * wx + Rc[1, 1] * wy + Rc[1, 2] * wz + tc[1]
+    z = Rc[2, 0] * wx + Rc[2, 1] * wy + Rc[2, 2] * wz + tc[2]
+    depth[i] = z
+    o = np.float64(opacities[i])
+    if not (z > NEAR) or not (o >= MIN_ALPHA):
+        return
+    qw = np.float64(quats[i, 0])
+    qx = np.float64(quats[i, 1])
+    qy = np.float64(quats[i, 2])
+    qz = np.float64(quats[i, 3])
+    qn = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    if qn > 0.0:
+        qn = 1.0 / qn
+        qw, qx, qy, qz = qw * qn, qx * qn, qy * qn, qz * qn
+    else:
+        qw = 1.0
+    r00 = 1.0 - 2.0 * (qy * qy + qz * qz)
+    r01 = 2.0 * (qx * qy - qw * qz)
+    r02 = 2.0 * (qx * qz + qw * qy)
+    r10 = 2.0 * (qx * qy + qw * qz)
+    r11 = 1.0 - 2.0 * (qx * qx + qz * qz)
+    r12 = 2.0 * (qy * qz - qw * qx)
+    r20 = 2.0 * (qx * qz - qw * qy)
+    r21 = 2.0 * (qy * qz + qw * qx)
+    r22 = 1.0 - 2.0 * (qx * qx + qy * qy)
+    iz = 1.0 / z
+    xz = min(max(x * iz, -(cx / fx + tan_x)), (width - cx) / fx + tan_x)
+    yz = min(max(y * iz, -(cy / fy + tan_y)), (height - cy) / fy + tan_y)
+    j00 = fx * iz
+    j02 = -j00 * xz
+    j11 = fy * iz
+    j12 = -j11 * yz
+    a = 0.0
+    b = 0.0
+    c = 0.0
+    for k in range(3):  # columns of Rc R S: the scaled axes in camera space
+        if k == 0:
+            g0, g1, g2, s = r00, r10, r20, np.float64(scales[i, 0])
+        elif k == 1:
+            g0, g1, g2, s = r01, r11, r21, np.float64(scales[i, 1])
+        else:
+            g0, g1, g2, s = r02, r12, r22, np.float64(scales[i, 2])
+        m0 = (Rc[0, 0] * g0 + Rc[0, 1] * g1 + Rc[0, 2] * g2) * s
+        m1 = (Rc[1, 0] * g0 + Rc[1, 1] * g1 + Rc[1, 2] * g2) * s
+        m2 = (Rc[2, 0] * g0 + Rc[2, 1] * g1 + Rc[2, 2] * g2) * s
+        t0 = j00 * m0 + j02 * m2
+        t1 = j11 * m1 + j12 * m2
+        a += t0 * t0
+        b += t0 * t1
+        c += t1 * t1
+    a += BLUR
+    c += BLUR
+    det = a * c - b * b
+    if not (det > 0.0):
+        return
+    mid = 0.5 * (a + c)
+    # math.ceil/floor give integers: their arguments are clamped to where the result is exact and the
+    # clipping below unchanged (float64 beyond int64 has no defined conversion on the device).
+    r = 1.0 * math.ceil(min(3.0 * math.sqrt(mid + math.sqrt(max(0.1, mid * mid - det))), 1e15))
+    u = fx * (x * iz) + cx
+    v = fy * (y * iz) + cy
+    thr = math.log(255.0 * o) + 0.01  # alpha >= 1/255 needs power <= log(255 o); 0.01 of margin
+    hx = min(r, math.sqrt(2.0 * thr * a))
+    hy = min(r, math.sqrt(2.0 * thr * c))
+    fu0 = max(0.0, 1.0 * math.ceil(min(max(u - hx - 0.5, -2.0), width + 2.0)))
+    fu1 = min(width - 1.0, 1.0 * math.floor(min(max(u + hx - 0.5, -2.0), width + 2.0)))
+    fv0 = max(0.0, 1.0 * math.ceil(min(max(v - hy - 0.5, -2.0), height + 2.0)))
+    fv1 = min(height - 1.0, 1.0 * math.floor(min(max(v + hy - 0.5, -2.0), height + 2.0)))
+    if fu0 > fu1 or fv0 > fv1:
+        return
+    u0 = np.int32(fu0)
+    u1 = np.int32(fu1)
+    v0 = np.int32(fv0)
+    v1 = np.int32(fv1)
+    rect[i, 0] = u0
+    rect[i, 1] = u1
+    rect[i, 2] = v0
+    rect[i, 3] = v1
+    counts[i] = (u1 // tile_size - u0 // tile_size + 1) * (v1 // tile_size - v0 // tile_size + 1)
+    idet = 1.0 / det
+    packed[i, 0] = u
+    packed[i, 1] = v
+    packed[i, 2] = 0.5 * c * idet
+    packed[i, 3] = -b * idet
+    packed[i, 4] = 0.5 * a * idet
+    packed[i, 5] = o
+    packed[i, 6] = z
+
+
+@cuda.jit
+def _duplicate(order, offsets, counts, rect, tile_size, tiles_x, keys):
+    """keys[offsets[r] + ...] = tile * K + r for every tile met by the Gaussian of rank r (K: the
+    length of order, which may list culled Gaussians and padding after the kept ones)."""
+    r = cuda.grid(1)
+    n = order.shape[0]
+    if r >= n:
+        return
+    g = order[r]
+    if g >= counts.shape[0] or counts[g] == 0:
+        return
+    k = offsets[r]
+    for ty in range(rect[g, 2] // tile_size, rect[g, 3] // tile_size + 1):
+        for tx in range(rect[g, 0] // tile_size, rect[g, 1] // tile_size + 1):
+            keys[k] = np.int64(ty * tiles_x + tx) * n + r
+            k += 1
+
+
+@cuda.jit
+def _ranges(keys, order, tile_range, ids):
+    """tile_range[t] = [start, end) of tile t's entries in the sorted keys; ids[e] its Gaussian id."""
+    e = cuda.grid(1)
+    m = keys.shape[0]
+    if e >= m:
+        return
+    n = order.shape[0]
+    tile = keys[e] // n
+    ids[e] = order[keys[e] - tile * n]
+    if e == 0 or keys[e - 1] // n != tile:
+        tile_range[tile, 0] = e
+    if e == m - 1 or keys[e + 1] // n != tile:
+        tile_range[tile, 1] = e + 1
+
+
+@cuda.jit
+def _composite(packed, rect, features, tile_range, ids, ch0, tiles_x, width, height, out_f, out_a, out_d):
+    """Block = tile, thread = pixel: composite the tile's list front to back (spec section 3), channels
+    ch0 .. ch0 + CHANNELS_PER_PASS of features into out_f, plus out_a and out_d."""
+    ts = cuda.blockDim.x
+    n_threads = ts * cuda.blockDim.y
+    tile = cuda.blockIdx.x
+    tid = cuda.threadIdx.y * ts + cuda.threadIdx.x
+    ix = (tile % tiles_x) * ts + cuda.threadIdx.x
+    iy = (tile // tiles_x) * ts + cuda.threadIdx.y
+    inside = ix < width and iy < height
+    px = np.float32(ix) + np.float32(0.5)
+    py = np.float32(iy) + np.float32(0.5)
+    n_ch = min(CHANNELS_PER_PASS, features.shape[1] - ch0)
+    acc = cuda.local.array(CHANNELS_PER_PASS, np.float32)
+    for c in range(CHANNELS_PER_PASS):
+        acc[c] = np.float32(0.0)
+    s_rec = cuda.shared.array((_BATCH, 7), np.float32)
+    s_rect = cuda.shared.array((_BATCH, 4), np.int32)
+    s_id = cuda.shared.array(_BATCH, np.int32)
+    T = np.float32(1.0)
+    D = np.float32(0.0)
+    done = not inside
+    start = tile_range[tile, 0]
+    end = tile_range[tile, 1]
+    for batch in range(start, end, n_threads):
+        if cuda.syncthreads_count(np.int32(1) if done else np.int32(0)) == n_threads:
+            break
+        k = batch + tid
+        if k < end:  # one Gaussian per thread into shared memory
+            g = ids[k]
+            s_id[tid] = g
+            for q in range(7):
+                s_rec[tid, q] = packed[g, q]
+            for q in range(4):
+                s_rect[tid, q] = rect[g, q]
+        cuda.syncthreads()
+        for j in range(min(n_threads, end - batch)):
+            if done:
+                break
+            if ix < s_rect[j, 0] or ix > s_rect[j, 1] or iy < s_rect[j, 2] or iy > s_rect[j, 3]:
+                continue
+            dx = px - s_rec[j, 0]
+            dy = py - s_rec[j, 1]
+            power = dx * (s_rec[j, 2] * dx + s_rec[j, 3] * dy) + s_rec[j, 4] * dy * dy
+            if power < np.float32(0.0):
+                continue
+            alpha = min(MAX_ALPHA32, s_rec[j, 5] * math.exp(-power))
+            if alpha < MIN_ALPHA32:
+                continue
+            t_next = T * (np.float32(1.0) - alpha)
+            if t_next < T_STOP32:
+                done = True
+                break
+            w = alpha * T
+            D += w * s_rec[j, 6]
+            g = s_id[j]
+            for c in range(n_ch):
+                acc[c] += w * features[g, ch0 + c]
+            T = t_next
+        cuda.syncthreads()  # the batch is read before the next one is loaded
+    if inside:
+        for c in range(n_ch):
+            out_f[iy, ix, ch0 + c] = acc[c]
+        a = np.float32(1.0) - T
+        out_a[iy, ix] = a
+        out_d[iy, ix] = D / a if a > np.float32(0.0) else np.float32(0.0)
+
+
+@cuda.jit
+def _decode(features, w1, w2, center, R, fx, fy, cx, cy, sigmoid, rgb):
+    """One thread per pixel: rgb = act(F[:3] + W2 relu(W1 [F[3:], centre, ray])), clamped to [0, 1]."""
+    ix, iy = cuda.grid(2)
+    if iy >= rgb.shape[0] or ix >= rgb.shape[1]:
+        return
+    x = cuda.local.array(12, np.float32)
+    for c in range(6):
+        x[c] = features[iy, ix, 3 + c]
+    du = (ix + 0.5 - cx) / fx  # ray direction in camera space, normalised, then R^T d (float64)
+    dv = (iy + 0.5 - cy) / fy
+    n = 1.0 / math.sqrt(du * du + dv * dv + 1.0)
+    for k in range(3):
+        x[6 + k] = center[k]
+        x[9 + k] = (R[0, k] * du + R[1, k] * dv + R[2, k]) * n
+    h = cuda.local.array(6, np.float32)
+    for j in range(6):
+        s = np.float32(0.0)
+        for c in range(12):
+            s += w1[j, c] * x[c]
+        h[j] = max(s, np.float32(0.0))
+    for j in range(3):
+        s = np.float32(0.0)
+        for c in range(6):
+            s += w2[j, c] * h[c]
+        s += features[iy, ix, j]
+        if sigmoid:
+            s = np.float32(1.0) / (np.float32(1.0) + math.exp(-s))
+        rgb[iy, ix, j] = min(max(s, np.float32(0.0)), np.float32(1.0))
+
+
+@cuda.jit
+def _lite(features, rgb):
+    ix, iy = cuda.grid(2)
+    if iy < rgb.shape[0] and ix < rgb.shape[1]:
+        for j in range(3):
+            rgb[iy, ix, j] = min(max(features[iy, ix, j], np.float32(0.0)), np.float32(1.0))
+
+
+def is_device_array(x) -> bool:
+    """Whether x is a device array (numba's, CuPy's, any __cuda_array_interface__; the simulator's)."""
+    return hasattr(x, "__cuda_array_interface__") or (simulated() and hasattr(x, "copy_to_host"))
+
+
+def _device_f32(x, shape):
+    """A contiguous float32 device array of `shape` (-1 allowed) from a host or device array."""
+    if is_device_array(x):
+        d = x if hasattr(x, "copy_to_host") else cuda.as_cuda_array(x)
+        if d.dtype != np.float32:
+            raise TypeError(f"device inputs must be float32, got {d.dtype}")
+        return d.reshape(shape) if d.shape != shape else d
+    return cuda.to_device(np.ascontiguousarray(np.asarray(x, dtype=np.float32).reshape(shape)))
+
+
+def _blocks(n, threads=256):
+    """(blocks, threads per block) for n threads: blocks of `threads`, fewer for small n."""
+    threads = min(threads, max(32, -(-n // 32) * 32))
+    return max(1, -(-n // threads)), threads
+
+
+@cuda.jit
+def _sort_init(depth, counts, d, idx):
+    """Bitonic sort input: (depth, index) of the kept Gaussians, (inf, index) for the rest and the
+    padding up to a power of two (so that they sort last)."""
+    i = cuda.grid(1)
+    if i < d.shape[0]:
+        d[i] = depth[i] if i < counts.shape[0] and counts[i] > 0 else math.inf
+        idx[i] = i
+
+
+@cuda.jit
+def _bitonic_pairs(d, idx, j, k):
+    """One compare-exchange step (k, j) of a bitonic sort of the unique pairs (d, idx)."""
+    i = cuda.grid(1)
+    if i >= d.shape[0]:
+        return
+    m = i ^ j
+    if m > i:
+        greater = d[i] > d[m] or (d[i] == d[m] and idx[i] > idx[m])
+        if greater == ((i & k) == 0):
+            d[i], d[m] = d[m], d[i]
+            idx[i], idx[m] = idx[m], idx[i]
+
+
+@cuda.jit
+def _bitonic_keys(keys, j, k):
+    """One compare-exchange step (k, j) of a bitonic sort of unique int64 keys."""
+    i = cuda.grid(1)
+    if i >= keys.shape[0]:
+        return
+    m = i ^ j
+    if m > i and (keys[i] > keys[m]) == ((i & k) == 0):
+        keys[i], keys[m] = keys[m], keys[i]
+
+
+@cuda.jit
+def _gather_counts(order, counts, out):
+    r = cuda.grid(1)
+    if r < order.shape[0]:
+        g = order[r]
+        out[r] = counts[g] if g < counts.shape[0] else 0
+
+
+@cuda.jit
+def _scan_step(src, dst, shift):
+    """One step of a Hillis-Steele inclusive prefix sum."""
+    i = cuda.grid(1)
+    if i < src.shape[0]:
+        dst[i] = src[i] + (src[i - shift] if i >= shift else 0)
+
+
+@cuda.jit
+def _exclusive(inclusive, counts, out):
+    i = cuda.grid(1)
+    if i < out.shape[0]:
+        out[i] = inclusive[i] - counts[i]
+
+
+@cuda.jit
+def _pad_keys(src, dst):
+    i = cuda.grid(1)
+    if i < dst.shape[0]:
+        dst[i] = src[i] if i < src.shape[0] else 9223372036854775807  # int64 max: sorts last
+
+
+def _bitonic_steps(n):
+    k = 2
+    while k <= n:
+        j = k // 2
+        while j >= 1:
+            yield j, k
+            j //= 2
+        k *= 2
+
+
+def _depth_order(depth_d, counts_d):
+    """Gaussian ids in (depth, index) order, the kept ones (count > 0) first, int32, the exclusive
+    prefix sums of their tile counts in that order, int64 (device arrays), and the total count."""
+    m = counts_d.shape[0]
+    cupy = _cupy()
+    if cupy is not None:
+        depth = cupy.asarray(depth_d)[:m]
+        counts = cupy.asarray(counts_d)
+        order = cupy.argsort(cupy.where(counts > 0, depth, cupy.inf))  # stable: ties by index
+        ordered = counts[order].astype(cupy.int64)
+        sums = cupy.cumsum(ordered)
+        total = int(sums[-1]) if m else 0
+        return cuda.as_cuda_array(order.astype(cupy.int32)), cuda.as_cuda_array(sums - ordered), total
+    n = 1 << max(0, (m - 1).bit_length())  # bitonic sort and scan on the device, padded to 2^k
+    d = cuda.device_array(n, np.float64)
+    order = cuda.device_array(n, np.int32)
+    _sort_init[_blocks(n)](depth_d, counts_d, d, order)
+    for j, k in _bitonic_steps(n):
+        _bitonic_pairs[_blocks(n)](d, order, j, k)
+    ordered = cuda.device_array(n, np.int64)
+    _gather_counts[_blocks(n)](order, counts_d, ordered)
+    buffers = [cuda.device_array(n, np.int64), cuda.device_array(n, np.int64)]
+    src, shift = ordered, 1
+    while shift < n:
+        dst = buffers[0] if src is not buffers[0] else buffers[1]
+        _scan_step[_blocks(n)](src, dst, shift)
+        src, shift = dst, 2 * shift
+    offsets = cuda.device_array(n, np.int64)
+    _exclusive[_blocks(n)](src, ordered, offsets)
+    total = int(src[n - 1:n].copy_to_host()[0]) if m else 0
+    return order, offsets, total
+
+
+def _sort_keys(keys_d):
+    """The unique int64 keys sorted (a new or the same device array)."""
+    cupy = _cupy()
+    if cupy is not None:
+        return cuda.as_cuda_array(cupy.sort(cupy.asarray(keys_d)))
+    total = keys_d.shape[0]
+    n = 1 << max(0, (total - 1).bit_length())
+    keys = cuda.device_array(n, np.int64)
+    _pad_keys[_blocks(n)](keys_d, keys)
+    for j, k in _bitonic_steps(n):
+        _bitonic_keys[_blocks(n)](keys, j, k)
+    return keys[:total]
+
+
+def rasterize(means, quats, scales, opacities, features, camera: Camera, *, tile_size: int = 16,
+              out: str = "host"):
+    """Render M Gaussians with the rules of formats/stg-v1.md, section 3, on the GPU.
+
+    Same arguments and results as stg_runtime.splat_cpu.rasterize: means (M, 3), quats (M, 4) wxyz,
+    scales (M, 3), opacities (M,), features (M, C): numpy or device arrays (converted to float32).
+    tile_size in 1..MAX_TILE (16; pixels; speed only). Returns (features (H, W, C), alpha (H, W), depth (H, W))
+    float32: numpy arrays, or numba device arrays with out="device".
+    """
+    require()
+    if out not in ("host", "device"):
+        raise ValueError(f"out must be 'host' or 'device', got {out!r}")
+    tile_size = int(tile_size)
+    if not 1 <= tile_size <= MAX_TILE:
+        raise ValueError(f"tile_size must be in 1..{MAX_TILE}, got {tile_size}")
+    means_d = _device_f32(means, (-1, 3))
+    m = means_d.shape[0]
+    quats_d = _device_f32(quats, (m, 4))
+    scales_d = _device_f32(scales, (m, 3))
+    opac_d = _device_f32(opacities, (m,))
+    if not is_device_array(features):
+        features = np.asarray(features)
+    shape = tuple(features.shape)  # (the simulator's shapes take no negative index)
+    C = shape[1] if len(shape) == 2 else (int(np.prod(shape)) // max(m, 1))
+    if C < 1:
+        raise ValueError("features need at least one channel")
+    feat_d = _device_f32(features, (m, C))
+    W, H = camera.width, camera.height
+    packed = cuda.device_array((max(m, 1), 7), np.float32)
+    rect = cuda.device_array((max(m, 1), 4), np.int32)
+    depth = cuda.device_array(max(m, 1), np.float64)
+    counts = cuda.device_array(m, np.int32)
+    if m:
+        _project[_blocks(m)](means_d, quats_d, scales_d, opac_d, cuda.to_device(np.ascontiguousarray(camera.R)),
+                             cuda.to_device(np.ascontiguousarray(camera.t)), float(camera.fx), float(camera.fy),
+                             float(camera.cx), float(camera.cy), W, H, tile_size, packed, rect, depth, counts)
+    tiles_x = -(-W // tile_size)
+    tiles_y = -(-H // tile_size)
+    tile_range = cuda.to_device(np.zeros((tiles_x * tiles_y, 2), np.int64))
+    order, offsets, total = _depth_order(depth[:m], counts)
+    ids = cuda.device_array(max(total, 1), np.int32)
+    if total:
+        keys = cuda.device_array(total, np.int64)
+        _duplicate[_blocks(order.shape[0])](order, offsets, counts, rect, tile_size, tiles_x, keys)
+        keys = _sort_keys(keys)
+        _ranges[_blocks(total)](keys, order, tile_range, ids)
+    out_f = cuda.device_array((H, W, C), np.float32)
+    out_a = cuda.device_array((H, W), np.float32)
+    out_d = cuda.device_array((H, W), np.float32)
+    for ch0 in range(0, C, CHANNELS_PER_PASS):
+        _composite[tiles_x * tiles_y, (tile_size, tile_size)](packed, rect, feat_d, tile_range, ids, ch0, tiles_x,
+                                                             W, H, out_f, out_a, out_d)
+    if out == "device":
+        return out_f, out_a, out_d
+    return out_f.copy_to_host(), out_a.copy_to_host(), out_d.copy_to_host()
+
+
+def _grid2d(W, H, block=16):
+    return (-(-W // block), -(-H // block)), (block, block)
+
+
+def lite_colour(features_d):
+    """Device (H, W, C) features -> device (H, W, 3) rgb = clamp(F[..., :3], 0, 1)."""
+    H, W = features_d.shape[:2]
+    rgb = cuda.device_array((H, W, 3), np.float32)
+    _lite[_grid2d(W, H)](features_d, rgb)
+    return rgb
+
+
+class FusedDecoder:
+    """The full model's decoder on the device: weights [W1 (6, 12), W2 (3, 6)] as given by
+    onnx_mlp.mlp_weights (the format's 12 -> 6 -> 3 MatMul/Relu graph), activation "sigmoid", "clamp"
+    or "identity" (the last two: clamped to [0, 1] only)."""
+
+    def __init__(self, weights, activation: str):
+        if (len(weights) != 2 or tuple(weights[0].shape) != (6, 12) or tuple(weights[1].shape) != (3, 6)):
+            raise ValueError("the fused decoder needs the 12 -> 6 -> 3 MatMul/Relu graph, got layers "
+                             f"{[tuple(w.shape) for w in weights]}")
+        self.w1 = cuda.to_device(np.ascontiguousarray(weights[0], np.float32))
+        self.w2 = cuda.to_device(np.ascontiguousarray(weights[1], np.float32))
+        self.sigmoid = activation == "sigmoid"
+
+    @classmethod
+    def from_onnx(cls, onnx_bytes: bytes, activation: str):
+        """A FusedDecoder, or None if the graph is not the 12 -> 6 -> 3 MatMul/Relu shape."""
+        from .onnx_mlp import mlp_weights
+        weights = mlp_weights(onnx_bytes)
+        if weights is None or len(weights) != 2 or weights[0].shape != (6, 12) or weights[1].shape != (3, 6):
+            return None
+        return cls(weights, activation)
+
+    def __call__(self, features_d, camera: Camera):
+        """Device (H, W, 9) features -> device (H, W, 3) rgb in [0, 1]."""
+        H, W, C = features_d.shape
+        if C != 9:
+            raise ValueError(f"the fused decoder expects 9 feature channels, got {C}")
+        rgb = cuda.device_array((H, W, 3), np.float32)
+        _decode[_grid2d(W, H)](features_d, self.w1, self.w2, cuda.to_device(np.asarray(camera.center, np.float64)),
+                               cuda.to_device(np.ascontiguousarray(camera.R)), float(camera.fx), float(camera.fy),
+                               float(camera.cx), float(camera.cy), self.sigmoid, rgb)
+        return rgb

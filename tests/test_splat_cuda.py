@@ -1,0 +1,207 @@
+"""The numba.cuda splatter (stg_runtime.splat_cuda) and Player(device="cuda") against the float64
+reference (stg_runtime.splat_reference), the CPU player and onnxruntime's decoder.
+
+Without a GPU the kernel tests run in numba's CUDA simulator, which must be enabled before numba.cuda is
+first imported: test_kernels_under_simulator runs this file again in a subprocess with
+NUMBA_ENABLE_CUDASIM=1 on tiny images (the simulator runs every GPU thread in Python). On a machine where
+numba sees a GPU the same tests run directly, on larger scenes, and the subprocess test is skipped.
+"""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from stg_runtime import Player
+from stg_runtime.demo import demo_model, random_model
+from stg_runtime.splat_reference import rasterize_reference
+
+SIM = os.environ.get("NUMBA_ENABLE_CUDASIM") == "1"
+if SIM:
+    from stg_runtime import splat_cuda
+    GPU = False
+else:
+    from stg_runtime import splat_cuda
+    GPU = splat_cuda.gpu_available()
+RUN = SIM or GPU
+needs_kernels = pytest.mark.skipif(not RUN, reason="no GPU here: these run in the simulator subprocess "
+                                                   "(test_kernels_under_simulator)")
+needs_gpu = pytest.mark.skipif(not GPU, reason="needs a real CUDA GPU")
+TOL = 1e-4
+W, H = (16, 12) if SIM else (96, 64)  # the simulator is slow: tiny images
+M = 30 if SIM else 400
+
+
+def _scene(seed, m, channels, **kwargs):
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from test_splat import clean_scenes
+    (scene,) = clean_scenes(seed, 1, m, W, H, channels, **kwargs)
+    return scene
+
+
+def _assert_matches(got, ref):
+    f, a, d = got
+    rf, ra, rd = ref
+    assert f.dtype == a.dtype == d.dtype == np.float32
+    assert f.shape == rf.shape and a.shape == ra.shape and d.shape == rd.shape
+    np.testing.assert_allclose(f, rf, atol=TOL, rtol=0)
+    np.testing.assert_allclose(a, ra, atol=TOL, rtol=0)
+    solid = ra > 0.5
+    assert np.all(np.abs(d - rd)[solid] <= TOL * np.maximum(1.0, rd[solid]))
+    assert ra.max() > 0.5  # the scene shows something
+
+
+@needs_kernels
+@pytest.mark.parametrize("channels, seed, tile_size, kwargs", [
+    (3, 0, 16, {}),
+    (9, 1, 8, {}),
+    (3, 2, 8, {"opacity": (0.02, 0.3), "size": (2.0, 10.0)}),  # deep: many thin layers per pixel
+    (3, 7, 16, {"opacity": (0.6, 1.0), "size": (2.0, 10.0)}),  # opaque: pixels stop (T < 1e-4)
+    (17, 3, 16, {"opacity": (0.6, 1.0), "size": (1.0, 8.0)}),  # more channels than one pass holds
+])
+def test_kernels_match_reference(channels, seed, tile_size, kwargs):
+    arrays, camera, ref = _scene(seed, M, channels, **kwargs)
+    got = splat_cuda.rasterize(*arrays, camera, tile_size=tile_size)
+    _assert_matches(got, ref)
+
+
+@needs_kernels
+def test_equal_depths_composite_lower_index_first():
+    arrays, camera, _ = _scene(8, M // 2, 3, opacity=(0.5, 0.9))
+    means, quats, scales, opacities, features = arrays
+    twice = [np.concatenate([a, a]) for a in (means, quats, scales, opacities)]
+    twice.append(np.concatenate([features, -features]))  # the copies differ only in colour
+    ref = rasterize_reference(*twice, camera)
+    got = splat_cuda.rasterize(*twice, camera)
+    _assert_matches(got, ref)
+    swapped = rasterize_reference(*twice[:4], np.concatenate([-features, features]), camera)
+    assert np.abs(swapped[0] - ref[0]).max() > 0.1  # the order of the tied pairs shows in the image
+
+
+@needs_kernels
+def test_device_inputs_outputs_and_tile_size():
+    from numba import cuda
+    arrays, camera, ref = _scene(4, M, 9)
+    on_device = [cuda.to_device(a) for a in arrays]
+    f, a, d = splat_cuda.rasterize(*on_device, camera, tile_size=16, out="device")
+    assert splat_cuda.is_device_array(f) and f.shape == (H, W, 9)
+    _assert_matches((f.copy_to_host(), a.copy_to_host(), d.copy_to_host()), ref)
+    # Every per-pixel decision is the pixel's own: the tiling changes nothing, bit for bit.
+    f5, a5, d5 = splat_cuda.rasterize(*arrays, camera, tile_size=5)
+    np.testing.assert_array_equal(f5, f.copy_to_host())
+    np.testing.assert_array_equal(a5, a.copy_to_host())
+    with pytest.raises(ValueError, match="tile_size"):
+        splat_cuda.rasterize(*arrays, camera, tile_size=64)
+
+
+@needs_kernels
+def test_empty_and_culled_scenes_render_transparent():
+    arrays, camera, _ = _scene(5, M, 3)
+    means, quats, scales, opacities, features = arrays
+    f, a, d = splat_cuda.rasterize(means, quats, scales, np.zeros_like(opacities), features, camera)
+    assert f.shape == (H, W, 3) and not f.any() and not a.any() and not d.any()
+    f, a, d = splat_cuda.rasterize(means[:0], quats[:0], scales[:0], opacities[:0], features[:0], camera)
+    assert f.shape == (H, W, 3) and not a.any()
+
+
+@needs_kernels
+def test_fused_decoder_matches_onnxruntime():
+    from stg_runtime.decoder import Decoder
+    from stg_runtime.onnx_mlp import mlp_to_onnx
+    segment = demo_model("full", num_frames=2).segments[0]
+    arrays, camera, _ = _scene(6, M, 9)
+    features = splat_cuda.rasterize(*arrays, camera)[0] * 3.0  # larger features: the ReLUs matter
+    want = Decoder(segment.decoder, segment.activation)(features, camera)
+    fused = splat_cuda.FusedDecoder.from_onnx(segment.decoder, segment.activation)
+    assert fused is not None
+    from numba import cuda
+    got = fused(cuda.to_device(features), camera).copy_to_host()
+    np.testing.assert_allclose(got, want, atol=1e-5, rtol=0)
+    assert want.std() > 0.01
+    # Other graph shapes are not fused (the player then runs onnxruntime).
+    rng = np.random.default_rng(0)
+    other = mlp_to_onnx([rng.normal(size=(8, 12)).astype(np.float32), rng.normal(size=(3, 8)).astype(np.float32)])
+    assert splat_cuda.FusedDecoder.from_onnx(other, "sigmoid") is None
+
+
+@needs_kernels
+@pytest.mark.parametrize("kind", ["lite", "full"])
+def test_time_evaluation_matches_cpu(kind):
+    from stg_runtime.timeeval import evaluate
+    from stg_runtime.timeeval_cuda import DeviceSegment
+    segment = random_model(4 * M, kind, width=W, height=H).segments[0]
+    segment.t_scale[::3] = 300.0  # a third of them are visible briefly only
+    device_segment = DeviceSegment(segment)
+    for tau in (0.0, 0.37, 1.0):
+        want = evaluate(segment, tau)
+        got = [a.copy_to_host() for a in device_segment.evaluate(tau)]
+        assert 0 < len(want.index) < segment.count  # some Gaussians are faded out at every time
+        kept = got[3] >= np.float32(1 / 255)
+        np.testing.assert_array_equal(np.flatnonzero(kept), want.index)
+        for name, g, w in zip(("means", "quats", "scales", "opacities", "features"), got, want[1:]):
+            np.testing.assert_allclose(g[kept], w, atol=1e-6, rtol=1e-6, err_msg=f"{name} at tau={tau}")
+
+
+@needs_kernels
+@pytest.mark.parametrize("kind", ["lite", "full", "sh", "full-unfused"])
+def test_player_cuda_matches_cpu(kind):
+    model = random_model(M, kind.split("-")[0], width=W, height=H, radius_px=(1.0, 6.0))
+    if kind == "full-unfused":  # a 12 -> 8 -> 3 decoder: not fused, run by onnxruntime on the host
+        from stg_runtime.onnx_mlp import mlp_to_onnx
+        rng = np.random.default_rng(1)
+        model.segments[0].decoder = mlp_to_onnx([rng.normal(0, 0.5, (8, 12)).astype(np.float32),
+                                                 rng.normal(0, 0.5, (3, 8)).astype(np.float32)])
+    camera = model.cameras[0]
+    cuda_player = Player(model, device="cuda")
+    assert cuda_player.device == "cuda"
+    got = cuda_player.render_all(camera, 0.5 * model.duration)
+    want = Player(model, device="cpu").render_all(camera, 0.5 * model.duration)
+    for name, g, w in zip(got._fields, got, want):
+        assert isinstance(g, np.ndarray) and g.dtype == np.float32, name
+        np.testing.assert_allclose(g, w, atol=TOL, rtol=0, err_msg=name)
+    assert want.alpha.max() > 0.5
+    if kind.startswith("full"):  # which decoder path ran
+        assert (cuda_player._fused[id(model.segments[0])] is None) == (kind == "full-unfused")
+    rgb = cuda_player.render(camera, 0.5 * model.duration, out="device")
+    assert splat_cuda.is_device_array(rgb)
+    np.testing.assert_allclose(rgb.copy_to_host(), want.rgb, atol=TOL, rtol=0)
+
+
+@needs_kernels
+def test_auto_never_picks_the_simulator():
+    assert Player(demo_model("lite", num_frames=2), device="auto").device == ("cuda" if GPU else "cpu")
+
+
+@needs_gpu
+def test_player_cuda_renders_demo_on_gpu():
+    model = demo_model("full", num_frames=4)
+    camera = model.cameras[0]
+    got = Player(model, device="cuda").render(camera, 0.05)
+    want = Player(model, device="cpu").render(camera, 0.05)
+    np.testing.assert_allclose(got, want, atol=TOL, rtol=0)
+
+
+def test_cuda_without_gpu_is_refused_clearly():
+    if RUN:
+        pytest.skip("the kernels can run here")
+    with pytest.raises(RuntimeError, match="no CUDA GPU.*device='cpu'"):
+        Player(demo_model("lite", num_frames=2), device="cuda")
+    assert Player(demo_model("lite", num_frames=2), device="auto").device == "cpu"
+    with pytest.raises(ValueError, match="needs device 'cuda'"):
+        Player(demo_model("lite", num_frames=2), device="cpu").render(demo_model("lite").cameras[0], 0.0, out="device")
+
+
+def test_kernels_under_simulator():
+    if RUN:
+        pytest.skip("the kernels run directly in this process")
+    env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1")
+    root = Path(__file__).resolve().parent.parent
+    out = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", __file__],
+                         cwd=root, env=env, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stdout[-4000:] + out.stderr[-2000:]
+    last = out.stdout.strip().splitlines()[-1]
+    assert "16 passed" in last and "failed" not in last, last
