@@ -15,6 +15,7 @@ import numpy as np
 from stg_runtime import Camera, Model, Segment
 from stg_runtime import format as stg_format
 from stg_runtime.onnx_mlp import mlp_to_onnx
+from stg_runtime.sh import sh_colours_reference
 from stg_runtime.splat_reference import rasterize_reference
 from stg_runtime.timeeval import evaluate_reference
 
@@ -32,8 +33,10 @@ def _segment(rng, start, frames, kind, weights=None) -> Segment:
     position[:, 0] = np.stack([rng.uniform(-1.5, 1.5, n), rng.uniform(-1, 1, n), rng.uniform(3, 5, n)], 1)
     position[:, 1:] = 0.3 * rng.standard_normal((n, 3, 3))
     rotation = np.concatenate([rng.standard_normal((n, 1, 4)), 0.5 * rng.standard_normal((n, 1, 4))], 1)
-    channels = 9 if kind == "full" else 3
+    channels = {"full": 9, "lite": 3, "sh": 27}[kind]
     features = rng.uniform(0, 1, (n, channels)) if kind == "lite" else rng.standard_normal((n, channels))
+    if kind == "sh":  # degree 2: a colourful DC term, smaller higher bands
+        features[:, 3:] *= 0.3
     return Segment(start, frames, opacity=rng.uniform(0.2, 1.0, n), t_center=rng.uniform(0, 1, n),
                    t_scale=rng.uniform(0, 6, n), position=position, rotation=rotation,
                    scale=rng.uniform(0.05, 0.4, (n, 3)), features=features,
@@ -56,8 +59,11 @@ def expected_render(model: Model, camera: Camera, t: float, weights) -> np.ndarr
     """(H, W, 3) float64 render of `model` at t seconds by the reference path."""
     seg, tau = model.segment_at(t)
     g = evaluate_reference(seg, tau)
-    feats, _, _ = rasterize_reference(g["means"], g["quats"], g["scales"], g["opacities"], g["features"], camera)
-    if model.kind == "lite":
+    colours = g["features"]
+    if model.kind == "sh":  # per-Gaussian colour for this view, before splatting
+        colours = sh_colours_reference(colours, g["means"], camera.center)
+    feats, _, _ = rasterize_reference(g["means"], g["quats"], g["scales"], g["opacities"], colours, camera)
+    if model.kind in ("lite", "sh"):
         return np.clip(feats[..., :3], 0, 1)
     return _numpy_decoder(feats, camera, weights, seg.activation)
 
@@ -72,7 +78,9 @@ def main() -> None:
                  bounds=((-2, -2, 2), (2, 2, 6)), provenance={"tool": "tools/make_test_vectors.py"})
     quantized = {"position": "f16", "rotation": "u16", "scale": "u16", "features": "u8", "opacity": "u8",
                  "t_center": "u16", "t_scale": "f16"}
-    vectors = [("lite", lite, {}), ("full", full, {}), ("full_quantized", full, quantized)]
+    sh = Model("sh", FPS, [_segment(np.random.default_rng(2026), 0, 10, "sh")], cameras=[cam],
+               bounds=((-2, -2, 2), (2, 2, 6)), provenance={"tool": "tools/make_test_vectors.py"})
+    vectors = [("lite", lite, {}), ("full", full, {}), ("full_quantized", full, quantized), ("sh", sh, {})]
     times = [0.0, 0.25, 0.62, 0.95]
     index = {}
     for name, model, encodings in vectors:
