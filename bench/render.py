@@ -6,8 +6,9 @@ breakdown (time evaluation, splatting, decoder), beside the float64 numpy refere
     python bench/render.py --device cuda [--gaussians 200000] [--size 1352x1014]
 
 --device cuda times the numba.cuda path (stg_runtime.splat_cuda: Player(device="cuda") with
-render(out="device"), i.e. without the copy to the host) and its steps, and gsplat's rasterization of
-the same Gaussians where gsplat and torch with CUDA are installed. It needs a real GPU.
+render(out="device"), i.e. without the copy to the host) and its steps (the splat with either device
+sort, the fused and the onnxruntime decoder), and gsplat's rasterization of the same Gaussians where
+gsplat and torch with CUDA are installed. It needs a real GPU.
 
 Scenes come from stg_runtime.demo.random_model: Gaussians uniform in the volume of a 60-degree frustum
 between depths 2 and 10, projected 3-sigma radius log-uniform in --radius pixels (default 0.5..10,
@@ -53,6 +54,7 @@ def cuda_main(args) -> None:
                             if splat_cuda.simulated() else "") + "; run it on a machine with an NVIDIA GPU")
     from numba import cuda
 
+    from stg_runtime.decoder_cuda import FusedDecoder, OnnxDeviceDecoder, cuda_provider_available
     from stg_runtime.timeeval_cuda import DeviceSegment
 
     def gpu_seconds(fn, repeats):
@@ -61,9 +63,13 @@ def cuda_main(args) -> None:
     w, h = (int(v) for v in args.size.lower().split("x"))
     name = cuda.get_current_device().name
     print(f"GPU: {name.decode() if isinstance(name, bytes) else name}; "
-          f"numba {numba.__version__}; device sort: {'CuPy' if splat_cuda._cupy() is not None else 'numba bitonic'}")
+          f"numba {numba.__version__}; device sort: {'CuPy' if splat_cuda._cupy() is not None else 'numba radix'}")
     print(f"{args.gaussians} Gaussians at {w}x{h}, median of {args.repeats} renders (output left on the GPU)\n")
-    print(f"{'model':<8}{'FPS':>8}{'ms/frame':>10}{'eval ms':>9}{'splat ms':>10}{'decode ms':>11}{'gsplat ms':>11}")
+    print("splat ms: with the sort above; numba sort: the same splat with stg_runtime.sort_cuda's radix sort; "
+          "decode: fused kernel; onnx: onnxruntime "
+          + ("CUDA provider" if cuda_provider_available() else "CPU provider, through the host") + "\n")
+    print(f"{'model':<8}{'FPS':>8}{'ms/frame':>10}{'eval ms':>9}{'splat ms':>10}{'numba sort':>12}"
+          f"{'decode ms':>11}{'onnx ms':>9}{'gsplat ms':>11}")
     radius_px = tuple(float(v) for v in args.radius.split(","))
     for kind in ("lite", "full"):
         model = random_model(args.gaussians, kind, width=w, height=h, radius_px=radius_px)
@@ -75,15 +81,18 @@ def cuda_main(args) -> None:
         t_eval = gpu_seconds(lambda: dseg.evaluate(0.5), args.repeats)
         g = dseg.evaluate(0.5)
         t_splat = gpu_seconds(lambda: splat_cuda.rasterize(*g, cam, out="device"), args.repeats)
-        t_dec = 0.0
+        t_numba_sort = gpu_seconds(lambda: splat_cuda.rasterize(*g, cam, out="device", sort="numba"), args.repeats)
+        t_dec = t_onnx = 0.0
         if kind == "full":
             feats = splat_cuda.rasterize(*g, cam, out="device")[0]
-            fused = splat_cuda.FusedDecoder.from_onnx(seg.decoder, seg.activation)
+            fused = FusedDecoder.from_onnx(seg.decoder, seg.activation)
             t_dec = gpu_seconds(lambda: fused(feats, cam), args.repeats)
+            onnx = OnnxDeviceDecoder(seg.decoder, seg.activation)
+            t_onnx = gpu_seconds(lambda: onnx(feats, cam), args.repeats)
         t_gsplat = _gsplat_seconds([a.copy_to_host() for a in g], cam, args.repeats)
         gs = f"{1000 * t_gsplat:>11.2f}" if t_gsplat else f"{'n/a':>11}"
         print(f"{kind:<8}{1 / total:>8.1f}{1000 * total:>10.2f}{1000 * t_eval:>9.2f}{1000 * t_splat:>10.2f}"
-              f"{1000 * t_dec:>11.2f}{gs}")
+              f"{1000 * t_numba_sort:>12.2f}{1000 * t_dec:>11.2f}{1000 * t_onnx:>9.2f}{gs}")
 
 
 def _gsplat_seconds(arrays, camera, repeats) -> float | None:

@@ -16,24 +16,27 @@ def activate(x: np.ndarray, activation: str) -> np.ndarray:
 
 
 class Decoder:
-    """Runs a segment's ONNX decoder with onnxruntime on the CPU.
+    """Runs a segment's ONNX decoder with onnxruntime (on the CPU unless `providers` says otherwise).
 
     onnx_bytes: a graph with one float32 input (P, C + 3) and one float32 output (P, 3), where C is the
-    feature channel count; activation: "sigmoid", "clamp" or "identity".
+    feature channel count; activation: "sigmoid", "clamp" or "identity". The input rows are
+    [F[3:], camera centre, unit ray direction] (formats/stg-v1.md, section 2).
     """
 
-    def __init__(self, onnx_bytes: bytes, activation: str, threads: int = 0):
+    def __init__(self, onnx_bytes: bytes, activation: str, threads: int = 0,
+                 providers: tuple[str, ...] = ("CPUExecutionProvider",)):
         check_graph(onnx_bytes)
         options = ort.SessionOptions()
         options.intra_op_num_threads = threads
         options.log_severity_level = 3
-        self.session = ort.InferenceSession(onnx_bytes, options, providers=["CPUExecutionProvider"])
+        self.session = ort.InferenceSession(onnx_bytes, options, providers=list(providers))
         (inp,), (out,) = self.session.get_inputs(), self.session.get_outputs()
         if len(inp.shape) != 2 or not isinstance(inp.shape[1], int):
             raise ValueError(f"decoder input must be (pixels, channels), got shape {inp.shape}")
         if len(out.shape) != 2 or out.shape[1] != 3:
             raise ValueError(f"decoder output must be (pixels, 3), got shape {out.shape}")
         self.input_name, self.input_channels = inp.name, inp.shape[1]
+        self.output_name = out.name
         self.activation = activation
         self._view_inputs: dict = {}  # per camera: (H*W, 6) [camera centre, ray direction], reused over time
 

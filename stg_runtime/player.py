@@ -57,7 +57,7 @@ class Player:
         self.device = _resolve_device(device)
         self.model = source if isinstance(source, Model) else stg_format.load(source)
         self._decoders: dict[int, Decoder] = {}
-        self._fused: dict[int, object] = {}  # device "cuda": per segment, its FusedDecoder or None
+        self._device_decoders: dict[int, object] = {}  # device "cuda": per segment, Fused/OnnxDeviceDecoder
         self._device_segments: dict[int, object] = {}  # device "cuda": per segment, its DeviceSegment
 
     # -- what the model covers -----------------------------------------------------------------
@@ -128,9 +128,10 @@ class Player:
     def _render_cuda(self, segment: Segment, tau: float, camera: Camera, out: str) -> Rendered:
         """Time evaluation, splatting and colour with the numba.cuda kernels, on segments uploaded once.
         The colour of full models is the fused decoder, except for decoder graphs other than
-        12 -> 6 -> 3 MatMul/Relu (onnxruntime on the host). "sh" models evaluate time and their
-        per-Gaussian colours on the host (stg_runtime.timeeval, stg_runtime.sh), then upload them."""
-        from . import splat_cuda
+        12 -> 6 -> 3 MatMul/Relu (decoder_cuda.OnnxDeviceDecoder: onnxruntime). "sh" models evaluate
+        time and their per-Gaussian colours on the host (stg_runtime.timeeval, stg_runtime.sh), then
+        upload them."""
+        from . import decoder_cuda, splat_cuda
         if self.model.kind == "sh":
             g = evaluate(segment, tau)
             gaussians = (g.means, g.quats, g.scales, g.opacities, sh_colours(g.features, g.means, camera.center))
@@ -142,18 +143,13 @@ class Player:
             gaussians = self._device_segments[key].evaluate(tau)
         features, alpha, depth = splat_cuda.rasterize(*gaussians, camera, out="device")
         if self.model.kind in ("lite", "sh"):
-            rgb = splat_cuda.lite_colour(features)
+            rgb = decoder_cuda.lite_colour(features)
         else:
             key = id(segment)
-            if key not in self._fused:
-                self._fused[key] = splat_cuda.FusedDecoder.from_onnx(segment.decoder, segment.activation)
-            fused = self._fused[key]
-            if fused is not None:
-                rgb = fused(features, camera)
-            else:
-                rgb = np.ascontiguousarray(self._decoder(segment)(features.copy_to_host(), camera), np.float32)
-                if out == "device":
-                    rgb = splat_cuda.cuda.to_device(rgb)
+            if key not in self._device_decoders:
+                self._device_decoders[key] = (decoder_cuda.FusedDecoder.from_onnx(segment.decoder, segment.activation)
+                                              or decoder_cuda.OnnxDeviceDecoder(segment.decoder, segment.activation))
+            rgb = self._device_decoders[key](features, camera)
         if out == "device":
             return Rendered(rgb, features, alpha, depth)
         host = lambda a: a if isinstance(a, np.ndarray) else a.copy_to_host()  # noqa: E731

@@ -1,6 +1,6 @@
 """GPU splatter (numba.cuda): the rules of formats/stg-v1.md, section 3, with splat_cpu's contract.
 
-    rasterize(means, quats, scales, opacities, features, camera, *, tile_size=16, out="host")
+    rasterize(means, quats, scales, opacities, features, camera, *, tile_size=16, out="host", sort="auto")
         -> features (H, W, C), alpha (H, W), depth (H, W), all float32
 
 Inputs may be host (numpy) or device arrays; with out="device" the results stay on the device. The
@@ -12,23 +12,21 @@ pipeline (everything stays on the device between kernels, except where said):
    B, C/2, opacity, z), the rectangle (4 int32) and the number of tiles it meets (0: culled).
 2. Depth order: the kept Gaussians sorted by (depth, index), and the exclusive prefix sum of their
    tile counts in that order. With CuPy installed (and a real GPU): cupy.argsort (stable) and
-   cupy.cumsum. Without CuPy: a bitonic sort of the (depth, index) pairs (culled Gaussians and the
-   padding to a power of two sort last) and a Hillis-Steele scan, numba.cuda kernels, one launch per
-   step (O(n log^2 n) work: fine for tests and moderate sizes; install CuPy for speed).
+   cupy.cumsum. Without CuPy (or with sort="numba"): stg_runtime.sort_cuda's stable radix sort of
+   the depths' float64 bit patterns (positive floats order as their bits; culled Gaussians get the
+   bits of +inf, so they sort last; stability orders ties by index) and its scan.
 3. _duplicate (one thread per rank): one 64-bit key per (tile, Gaussian) pair, tile * K + rank
-   (K the length of the order, rank the Gaussian's place in it); the keys are unique, and sorting
-   them (cupy.sort, or the bitonic sort) gives every tile's list front to back; _ranges finds each
-   tile's [start, end) and the Gaussian ids. Only the total pair count is copied to the host (to
-   allocate the keys).
+   (K the number of Gaussians, rank the Gaussian's place in the order); the keys are unique, and
+   sorting them (cupy.sort, or the radix sort over their bit length) gives every tile's list front
+   to back; _ranges finds each tile's [start, end) and the Gaussian ids. Only the total pair count is
+   copied to the host (to allocate the keys).
 4. _composite (one block per tile, one thread per pixel): Gaussians are loaded in batches of one per
    thread into shared memory and composited front to back with the spec's skip and stop rules in
    float32 (as splat_cpu: the pixel rectangle is the footprint test). Features are accumulated in
    registers, up to CHANNELS_PER_PASS channels per launch (more channels: more passes over the same
    lists). A block ends once all its pixels have stopped (syncthreads_count).
 
-FusedDecoder: the full model's 12 -> 6 -> 3 MatMul/Relu decoder, evaluated per pixel on the device from
-the composited feature image (weights read by onnx_mlp.mlp_weights); lite_colour: the lite models'
-clamp, on the device. Time evaluation on the device: stg_runtime.timeeval_cuda.
+Colour on the device: stg_runtime.decoder_cuda; time evaluation: stg_runtime.timeeval_cuda.
 
 Under numba's simulator (NUMBA_ENABLE_CUDASIM=1, set before numba.cuda is first imported) the same
 kernels run on the CPU, slowly: the tests use it on tiny images.
@@ -41,7 +39,9 @@ import numpy as np
 from numba import config as _numba_config
 from numba import cuda
 
+from . import sort_cuda
 from .camera import Camera
+from .cuda_math import dmax, dmin
 from .splat_reference import BLUR, MAX_ALPHA, MIN_ALPHA, NEAR, T_STOP
 
 _CUPY: list = []
@@ -56,6 +56,11 @@ def _cupy():
             cupy = None
         _CUPY.append(None if simulated() else cupy)
     return _CUPY[0]
+
+
+#: sort_cuda's block shape: its defaults on a GPU; under the simulator, where every barrier of every
+#: block costs milliseconds, small blocks (the same kernels; tests/test_sort_cuda.py covers both).
+_SORT_SHAPE: dict = {"_block": 8, "_items": 4} if _numba_config.ENABLE_CUDASIM else {}
 
 #: Feature channels accumulated per compositing launch (registers per thread).
 CHANNELS_PER_PASS = 16
@@ -147,8 +152,8 @@ def _project(means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, width, hei
     r21 = 2.0 * (qy * qz + qw * qx)
     r22 = 1.0 - 2.0 * (qx * qx + qy * qy)
     iz = 1.0 / z
-    xz = min(max(x * iz, -(cx / fx + tan_x)), (width - cx) / fx + tan_x)
-    yz = min(max(y * iz, -(cy / fy + tan_y)), (height - cy) / fy + tan_y)
+    xz = dmin(dmax(x * iz, -(cx / fx + tan_x)), (width - cx) / fx + tan_x)
+    yz = dmin(dmax(y * iz, -(cy / fy + tan_y)), (height - cy) / fy + tan_y)
     j00 = fx * iz
     j02 = -j00 * xz
     j11 = fy * iz
@@ -179,16 +184,16 @@ def _project(means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, width, hei
     mid = 0.5 * (a + c)
     # math.ceil/floor give integers: their arguments are clamped to where the result is exact and the
     # clipping below unchanged (float64 beyond int64 has no defined conversion on the device).
-    r = 1.0 * math.ceil(min(3.0 * math.sqrt(mid + math.sqrt(max(0.1, mid * mid - det))), 1e15))
+    r = 1.0 * math.ceil(dmin(3.0 * math.sqrt(mid + math.sqrt(dmax(0.1, mid * mid - det))), 1e15))
     u = fx * (x * iz) + cx
     v = fy * (y * iz) + cy
     thr = math.log(255.0 * o) + 0.01  # alpha >= 1/255 needs power <= log(255 o); 0.01 of margin
-    hx = min(r, math.sqrt(2.0 * thr * a))
-    hy = min(r, math.sqrt(2.0 * thr * c))
-    fu0 = max(0.0, 1.0 * math.ceil(min(max(u - hx - 0.5, -2.0), width + 2.0)))
-    fu1 = min(width - 1.0, 1.0 * math.floor(min(max(u + hx - 0.5, -2.0), width + 2.0)))
-    fv0 = max(0.0, 1.0 * math.ceil(min(max(v - hy - 0.5, -2.0), height + 2.0)))
-    fv1 = min(height - 1.0, 1.0 * math.floor(min(max(v + hy - 0.5, -2.0), height + 2.0)))
+    hx = dmin(r, math.sqrt(2.0 * thr * a))
+    hy = dmin(r, math.sqrt(2.0 * thr * c))
+    fu0 = dmax(0.0, 1.0 * math.ceil(dmin(dmax(u - hx - 0.5, -2.0), width + 2.0)))
+    fu1 = dmin(width - 1.0, 1.0 * math.floor(dmin(dmax(u + hx - 0.5, -2.0), width + 2.0)))
+    fv0 = dmax(0.0, 1.0 * math.ceil(dmin(dmax(v - hy - 0.5, -2.0), height + 2.0)))
+    fv1 = dmin(height - 1.0, 1.0 * math.floor(dmin(dmax(v + hy - 0.5, -2.0), height + 2.0)))
     if fu0 > fu1 or fv0 > fv1:
         return
     u0 = np.int32(fu0)
@@ -257,7 +262,7 @@ def _composite(packed, rect, features, tile_range, ids, ch0, tiles_x, width, hei
     inside = ix < width and iy < height
     px = np.float32(ix) + np.float32(0.5)
     py = np.float32(iy) + np.float32(0.5)
-    n_ch = min(CHANNELS_PER_PASS, features.shape[1] - ch0)
+    n_ch = dmin(CHANNELS_PER_PASS, features.shape[1] - ch0)
     acc = cuda.local.array(CHANNELS_PER_PASS, np.float32)
     for c in range(CHANNELS_PER_PASS):
         acc[c] = np.float32(0.0)
@@ -281,7 +286,7 @@ def _composite(packed, rect, features, tile_range, ids, ch0, tiles_x, width, hei
             for q in range(4):
                 s_rect[tid, q] = rect[g, q]
         cuda.syncthreads()
-        for j in range(min(n_threads, end - batch)):
+        for j in range(dmin(n_threads, end - batch)):
             if done:
                 break
             if ix < s_rect[j, 0] or ix > s_rect[j, 1] or iy < s_rect[j, 2] or iy > s_rect[j, 3]:
@@ -291,7 +296,7 @@ def _composite(packed, rect, features, tile_range, ids, ch0, tiles_x, width, hei
             power = dx * (s_rec[j, 2] * dx + s_rec[j, 3] * dy) + s_rec[j, 4] * dy * dy
             if power < np.float32(0.0):
                 continue
-            alpha = min(MAX_ALPHA32, s_rec[j, 5] * math.exp(-power))
+            alpha = dmin(MAX_ALPHA32, s_rec[j, 5] * math.exp(-power))
             if alpha < MIN_ALPHA32:
                 continue
             t_next = T * (np.float32(1.0) - alpha)
@@ -311,45 +316,6 @@ def _composite(packed, rect, features, tile_range, ids, ch0, tiles_x, width, hei
         a = np.float32(1.0) - T
         out_a[iy, ix] = a
         out_d[iy, ix] = D / a if a > np.float32(0.0) else np.float32(0.0)
-
-
-@cuda.jit
-def _decode(features, w1, w2, center, R, fx, fy, cx, cy, sigmoid, rgb):
-    """One thread per pixel: rgb = act(F[:3] + W2 relu(W1 [F[3:], centre, ray])), clamped to [0, 1]."""
-    ix, iy = cuda.grid(2)
-    if iy >= rgb.shape[0] or ix >= rgb.shape[1]:
-        return
-    x = cuda.local.array(12, np.float32)
-    for c in range(6):
-        x[c] = features[iy, ix, 3 + c]
-    du = (ix + 0.5 - cx) / fx  # ray direction in camera space, normalised, then R^T d (float64)
-    dv = (iy + 0.5 - cy) / fy
-    n = 1.0 / math.sqrt(du * du + dv * dv + 1.0)
-    for k in range(3):
-        x[6 + k] = center[k]
-        x[9 + k] = (R[0, k] * du + R[1, k] * dv + R[2, k]) * n
-    h = cuda.local.array(6, np.float32)
-    for j in range(6):
-        s = np.float32(0.0)
-        for c in range(12):
-            s += w1[j, c] * x[c]
-        h[j] = max(s, np.float32(0.0))
-    for j in range(3):
-        s = np.float32(0.0)
-        for c in range(6):
-            s += w2[j, c] * h[c]
-        s += features[iy, ix, j]
-        if sigmoid:
-            s = np.float32(1.0) / (np.float32(1.0) + math.exp(-s))
-        rgb[iy, ix, j] = min(max(s, np.float32(0.0)), np.float32(1.0))
-
-
-@cuda.jit
-def _lite(features, rgb):
-    ix, iy = cuda.grid(2)
-    if iy < rgb.shape[0] and ix < rgb.shape[1]:
-        for j in range(3):
-            rgb[iy, ix, j] = min(max(features[iy, ix, j], np.float32(0.0)), np.float32(1.0))
 
 
 def is_device_array(x) -> bool:
@@ -374,137 +340,84 @@ def _blocks(n, threads=256):
 
 
 @cuda.jit
-def _sort_init(depth, counts, d, idx):
-    """Bitonic sort input: (depth, index) of the kept Gaussians, (inf, index) for the rest and the
-    padding up to a power of two (so that they sort last)."""
+def _depth_keys(depth_bits, counts, keys, ids):
+    """Radix sort input: the depth's float64 bits for kept Gaussians (depth > NEAR > 0, so the bits
+    order as the depths), those of +inf for culled ones; ids = 0 .. M - 1."""
     i = cuda.grid(1)
-    if i < d.shape[0]:
-        d[i] = depth[i] if i < counts.shape[0] and counts[i] > 0 else math.inf
-        idx[i] = i
+    if i < keys.shape[0]:
+        keys[i] = depth_bits[i] if counts[i] > 0 else _INF_BITS
+        ids[i] = i
 
 
-@cuda.jit
-def _bitonic_pairs(d, idx, j, k):
-    """One compare-exchange step (k, j) of a bitonic sort of the unique pairs (d, idx)."""
-    i = cuda.grid(1)
-    if i >= d.shape[0]:
-        return
-    m = i ^ j
-    if m > i:
-        greater = d[i] > d[m] or (d[i] == d[m] and idx[i] > idx[m])
-        if greater == ((i & k) == 0):
-            d[i], d[m] = d[m], d[i]
-            idx[i], idx[m] = idx[m], idx[i]
-
-
-@cuda.jit
-def _bitonic_keys(keys, j, k):
-    """One compare-exchange step (k, j) of a bitonic sort of unique int64 keys."""
-    i = cuda.grid(1)
-    if i >= keys.shape[0]:
-        return
-    m = i ^ j
-    if m > i and (keys[i] > keys[m]) == ((i & k) == 0):
-        keys[i], keys[m] = keys[m], keys[i]
+_INF_BITS = np.int64(0x7FF0000000000000)
 
 
 @cuda.jit
 def _gather_counts(order, counts, out):
     r = cuda.grid(1)
     if r < order.shape[0]:
-        g = order[r]
-        out[r] = counts[g] if g < counts.shape[0] else 0
+        out[r] = counts[order[r]]
 
 
-@cuda.jit
-def _scan_step(src, dst, shift):
-    """One step of a Hillis-Steele inclusive prefix sum."""
-    i = cuda.grid(1)
-    if i < src.shape[0]:
-        dst[i] = src[i] + (src[i - shift] if i >= shift else 0)
+SORTS = ("auto", "cupy", "numba")
 
 
-@cuda.jit
-def _exclusive(inclusive, counts, out):
-    i = cuda.grid(1)
-    if i < out.shape[0]:
-        out[i] = inclusive[i] - counts[i]
+def _sorter(sort: str):
+    """CuPy for sort "cupy" (an error without it) and "auto" (when installed), else None (sort_cuda)."""
+    if sort not in SORTS:
+        raise ValueError(f"sort must be one of {SORTS}, got {sort!r}")
+    if sort == "numba":
+        return None
+    cupy = _cupy()
+    if cupy is None and sort == "cupy":
+        raise RuntimeError("sort='cupy': CuPy is not installed here (or this is numba's simulator); "
+                           "use sort='auto' or 'numba'")
+    return cupy
 
 
-@cuda.jit
-def _pad_keys(src, dst):
-    i = cuda.grid(1)
-    if i < dst.shape[0]:
-        dst[i] = src[i] if i < src.shape[0] else 9223372036854775807  # int64 max: sorts last
-
-
-def _bitonic_steps(n):
-    k = 2
-    while k <= n:
-        j = k // 2
-        while j >= 1:
-            yield j, k
-            j //= 2
-        k *= 2
-
-
-def _depth_order(depth_d, counts_d):
+def _depth_order(depth_d, counts_d, cupy):
     """Gaussian ids in (depth, index) order, the kept ones (count > 0) first, int32, the exclusive
     prefix sums of their tile counts in that order, int64 (device arrays), and the total count."""
     m = counts_d.shape[0]
-    cupy = _cupy()
     if cupy is not None:
-        depth = cupy.asarray(depth_d)[:m]
+        depth = cupy.asarray(depth_d)
         counts = cupy.asarray(counts_d)
         order = cupy.argsort(cupy.where(counts > 0, depth, cupy.inf))  # stable: ties by index
         ordered = counts[order].astype(cupy.int64)
         sums = cupy.cumsum(ordered)
         total = int(sums[-1]) if m else 0
         return cuda.as_cuda_array(order.astype(cupy.int32)), cuda.as_cuda_array(sums - ordered), total
-    n = 1 << max(0, (m - 1).bit_length())  # bitonic sort and scan on the device, padded to 2^k
-    d = cuda.device_array(n, np.float64)
-    order = cuda.device_array(n, np.int32)
-    _sort_init[_blocks(n)](depth_d, counts_d, d, order)
-    for j, k in _bitonic_steps(n):
-        _bitonic_pairs[_blocks(n)](d, order, j, k)
-    ordered = cuda.device_array(n, np.int64)
-    _gather_counts[_blocks(n)](order, counts_d, ordered)
-    buffers = [cuda.device_array(n, np.int64), cuda.device_array(n, np.int64)]
-    src, shift = ordered, 1
-    while shift < n:
-        dst = buffers[0] if src is not buffers[0] else buffers[1]
-        _scan_step[_blocks(n)](src, dst, shift)
-        src, shift = dst, 2 * shift
-    offsets = cuda.device_array(n, np.int64)
-    _exclusive[_blocks(n)](src, ordered, offsets)
-    total = int(src[n - 1:n].copy_to_host()[0]) if m else 0
+    keys = cuda.device_array(m, np.int64)
+    ids = cuda.device_array(m, np.int32)
+    if m:
+        _depth_keys[_blocks(m)](depth_d.view(np.int64), counts_d, keys, ids)
+    _, order = sort_cuda.radix_sort(keys, ids, key_bits=63, **_SORT_SHAPE)
+    ordered = cuda.device_array(m, np.int32)
+    if m:
+        _gather_counts[_blocks(m)](order, counts_d, ordered)
+    offsets, total = sort_cuda.exclusive_scan(ordered, **_SORT_SHAPE)
     return order, offsets, total
 
 
-def _sort_keys(keys_d):
-    """The unique int64 keys sorted (a new or the same device array)."""
-    cupy = _cupy()
+def _sort_keys(keys_d, largest: int, cupy):
+    """The unique int64 keys, all <= largest, sorted (a new or the same device array)."""
     if cupy is not None:
         return cuda.as_cuda_array(cupy.sort(cupy.asarray(keys_d)))
-    total = keys_d.shape[0]
-    n = 1 << max(0, (total - 1).bit_length())
-    keys = cuda.device_array(n, np.int64)
-    _pad_keys[_blocks(n)](keys_d, keys)
-    for j, k in _bitonic_steps(n):
-        _bitonic_keys[_blocks(n)](keys, j, k)
-    return keys[:total]
+    return sort_cuda.radix_sort(keys_d, key_bits=int(largest).bit_length(), **_SORT_SHAPE)[0]
 
 
 def rasterize(means, quats, scales, opacities, features, camera: Camera, *, tile_size: int = 16,
-              out: str = "host"):
+              out: str = "host", sort: str = "auto"):
     """Render M Gaussians with the rules of formats/stg-v1.md, section 3, on the GPU.
 
     Same arguments and results as stg_runtime.splat_cpu.rasterize: means (M, 3), quats (M, 4) wxyz,
     scales (M, 3), opacities (M,), features (M, C): numpy or device arrays (converted to float32).
     tile_size in 1..MAX_TILE (16; pixels; speed only). Returns (features (H, W, C), alpha (H, W), depth (H, W))
-    float32: numpy arrays, or numba device arrays with out="device".
+    float32: numpy arrays, or numba device arrays with out="device". sort: the device sort and scan,
+    "cupy", "numba" (stg_runtime.sort_cuda) or "auto" (CuPy where installed); speed only.
     """
     require()
+    cupy = _sorter(sort)
     if out not in ("host", "device"):
         raise ValueError(f"out must be 'host' or 'device', got {out!r}")
     tile_size = int(tile_size)
@@ -534,12 +447,12 @@ def rasterize(means, quats, scales, opacities, features, camera: Camera, *, tile
     tiles_x = -(-W // tile_size)
     tiles_y = -(-H // tile_size)
     tile_range = cuda.to_device(np.zeros((tiles_x * tiles_y, 2), np.int64))
-    order, offsets, total = _depth_order(depth[:m], counts)
+    order, offsets, total = _depth_order(depth[:m], counts, cupy)
     ids = cuda.device_array(max(total, 1), np.int32)
     if total:
         keys = cuda.device_array(total, np.int64)
         _duplicate[_blocks(order.shape[0])](order, offsets, counts, rect, tile_size, tiles_x, keys)
-        keys = _sort_keys(keys)
+        keys = _sort_keys(keys, tiles_x * tiles_y * m - 1, cupy)
         _ranges[_blocks(total)](keys, order, tile_range, ids)
     out_f = cuda.device_array((H, W, C), np.float32)
     out_a = cuda.device_array((H, W), np.float32)
@@ -550,49 +463,3 @@ def rasterize(means, quats, scales, opacities, features, camera: Camera, *, tile
     if out == "device":
         return out_f, out_a, out_d
     return out_f.copy_to_host(), out_a.copy_to_host(), out_d.copy_to_host()
-
-
-def _grid2d(W, H, block=16):
-    return (-(-W // block), -(-H // block)), (block, block)
-
-
-def lite_colour(features_d):
-    """Device (H, W, C) features -> device (H, W, 3) rgb = clamp(F[..., :3], 0, 1)."""
-    H, W = features_d.shape[:2]
-    rgb = cuda.device_array((H, W, 3), np.float32)
-    _lite[_grid2d(W, H)](features_d, rgb)
-    return rgb
-
-
-class FusedDecoder:
-    """The full model's decoder on the device: weights [W1 (6, 12), W2 (3, 6)] as given by
-    onnx_mlp.mlp_weights (the format's 12 -> 6 -> 3 MatMul/Relu graph), activation "sigmoid", "clamp"
-    or "identity" (the last two: clamped to [0, 1] only)."""
-
-    def __init__(self, weights, activation: str):
-        if (len(weights) != 2 or tuple(weights[0].shape) != (6, 12) or tuple(weights[1].shape) != (3, 6)):
-            raise ValueError("the fused decoder needs the 12 -> 6 -> 3 MatMul/Relu graph, got layers "
-                             f"{[tuple(w.shape) for w in weights]}")
-        self.w1 = cuda.to_device(np.ascontiguousarray(weights[0], np.float32))
-        self.w2 = cuda.to_device(np.ascontiguousarray(weights[1], np.float32))
-        self.sigmoid = activation == "sigmoid"
-
-    @classmethod
-    def from_onnx(cls, onnx_bytes: bytes, activation: str):
-        """A FusedDecoder, or None if the graph is not the 12 -> 6 -> 3 MatMul/Relu shape."""
-        from .onnx_mlp import mlp_weights
-        weights = mlp_weights(onnx_bytes)
-        if weights is None or len(weights) != 2 or weights[0].shape != (6, 12) or weights[1].shape != (3, 6):
-            return None
-        return cls(weights, activation)
-
-    def __call__(self, features_d, camera: Camera):
-        """Device (H, W, 9) features -> device (H, W, 3) rgb in [0, 1]."""
-        H, W, C = features_d.shape
-        if C != 9:
-            raise ValueError(f"the fused decoder expects 9 feature channels, got {C}")
-        rgb = cuda.device_array((H, W, 3), np.float32)
-        _decode[_grid2d(W, H)](features_d, self.w1, self.w2, cuda.to_device(np.asarray(camera.center, np.float64)),
-                               cuda.to_device(np.ascontiguousarray(camera.R)), float(camera.fx), float(camera.fy),
-                               float(camera.cx), float(camera.cy), self.sigmoid, rgb)
-        return rgb

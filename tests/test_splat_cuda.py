@@ -36,6 +36,17 @@ W, H = (16, 12) if SIM else (96, 64)  # the simulator is slow: tiny images
 M = 30 if SIM else 400
 
 
+@pytest.fixture(autouse=True)
+def _fast_simulator_threads():
+    """The simulator's block manager polls its threads: a GIL switch interval shorter than the default
+    5 ms makes its barriers several times faster. Restored after each test."""
+    old = sys.getswitchinterval()
+    if SIM:
+        sys.setswitchinterval(0.0005)
+    yield
+    sys.setswitchinterval(old)
+
+
 def _scene(seed, m, channels, **kwargs):
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     from test_splat import clean_scenes
@@ -99,6 +110,23 @@ def test_device_inputs_outputs_and_tile_size():
 
 
 @needs_kernels
+def test_device_sorts_agree():
+    """CuPy's sort and sort_cuda's radix sort give the same image, bit for bit (on a GPU with CuPy)."""
+    arrays, camera, ref = _scene(9, M, 3, opacity=(0.3, 0.9))
+    with pytest.raises(ValueError, match="sort must be one of"):
+        splat_cuda.rasterize(*arrays, camera, sort="bitonic")
+    if splat_cuda._cupy() is None:
+        with pytest.raises(RuntimeError, match="CuPy is not installed"):
+            splat_cuda.rasterize(*arrays, camera, sort="cupy")
+        return
+    with_cupy = splat_cuda.rasterize(*arrays, camera, sort="cupy")
+    with_numba = splat_cuda.rasterize(*arrays, camera, sort="numba")
+    for a, b in zip(with_cupy, with_numba):
+        np.testing.assert_array_equal(a, b)
+    _assert_matches(with_numba, ref)
+
+
+@needs_kernels
 def test_empty_and_culled_scenes_render_transparent():
     arrays, camera, _ = _scene(5, M, 3)
     means, quats, scales, opacities, features = arrays
@@ -108,24 +136,52 @@ def test_empty_and_culled_scenes_render_transparent():
     assert f.shape == (H, W, 3) and not a.any()
 
 
-@needs_kernels
-def test_fused_decoder_matches_onnxruntime():
-    from stg_runtime.decoder import Decoder
+def _other_decoder(seed=0, hidden=8):
+    """A 12 -> hidden -> 3 decoder graph: allowed by the format, not fused."""
     from stg_runtime.onnx_mlp import mlp_to_onnx
+    rng = np.random.default_rng(seed)
+    return mlp_to_onnx([rng.normal(0, 0.5, (hidden, 12)).astype(np.float32),
+                        rng.normal(0, 0.5, (3, hidden)).astype(np.float32)])
+
+
+@needs_kernels
+def test_device_decoders_match_onnxruntime_on_the_host():
+    from numba import cuda
+
+    from stg_runtime.decoder import Decoder
+    from stg_runtime.decoder_cuda import FusedDecoder, OnnxDeviceDecoder
     segment = demo_model("full", num_frames=2).segments[0]
     arrays, camera, _ = _scene(6, M, 9)
     features = splat_cuda.rasterize(*arrays, camera)[0] * 3.0  # larger features: the ReLUs matter
+    features_d = cuda.to_device(features)
     want = Decoder(segment.decoder, segment.activation)(features, camera)
-    fused = splat_cuda.FusedDecoder.from_onnx(segment.decoder, segment.activation)
-    assert fused is not None
-    from numba import cuda
-    got = fused(cuda.to_device(features), camera).copy_to_host()
-    np.testing.assert_allclose(got, want, atol=1e-5, rtol=0)
     assert want.std() > 0.01
-    # Other graph shapes are not fused (the player then runs onnxruntime).
-    rng = np.random.default_rng(0)
-    other = mlp_to_onnx([rng.normal(size=(8, 12)).astype(np.float32), rng.normal(size=(3, 8)).astype(np.float32)])
-    assert splat_cuda.FusedDecoder.from_onnx(other, "sigmoid") is None
+    onnx = OnnxDeviceDecoder(segment.decoder, segment.activation)  # the fused decoder's reference
+    np.testing.assert_allclose(onnx(features_d, camera).copy_to_host(), want, atol=1e-6, rtol=0)
+    fused = FusedDecoder.from_onnx(segment.decoder, segment.activation)
+    assert fused is not None
+    np.testing.assert_allclose(fused(features_d, camera).copy_to_host(), onnx(features_d, camera).copy_to_host(),
+                               atol=1e-5, rtol=0)
+    # Other graph shapes are not fused; onnxruntime runs them.
+    other = _other_decoder()
+    assert FusedDecoder.from_onnx(other, "sigmoid") is None
+    np.testing.assert_allclose(OnnxDeviceDecoder(other, "clamp")(features_d, camera).copy_to_host(),
+                               Decoder(other, "clamp")(features, camera), atol=1e-6, rtol=0)
+    with pytest.raises(ValueError, match="expects 9 feature channels, got 6"):
+        onnx(cuda.to_device(np.zeros((2, 3, 6), np.float32)), camera)
+
+
+def test_bound_session_run_matches_plain_run():
+    """The IOBinding call the CUDA provider path makes, on host buffers with the CPU provider (the same
+    binding; only the device type differs)."""
+    from stg_runtime.decoder import Decoder
+    from stg_runtime.decoder_cuda import run_bound
+    decoder = Decoder(_other_decoder(3), "sigmoid")
+    rows = np.random.default_rng(2).normal(size=(50, 12)).astype(np.float32)
+    out = np.full((50, 3), np.nan, np.float32)
+    run_bound(decoder, "cpu", rows.ctypes.data, 50, out.ctypes.data)
+    (want,) = decoder.session.run(None, {decoder.input_name: rows})
+    np.testing.assert_allclose(out, want, atol=1e-6, rtol=0)
 
 
 @needs_kernels
@@ -150,11 +206,8 @@ def test_time_evaluation_matches_cpu(kind):
 @pytest.mark.parametrize("kind", ["lite", "full", "sh", "full-unfused"])
 def test_player_cuda_matches_cpu(kind):
     model = random_model(M, kind.split("-")[0], width=W, height=H, radius_px=(1.0, 6.0))
-    if kind == "full-unfused":  # a 12 -> 8 -> 3 decoder: not fused, run by onnxruntime on the host
-        from stg_runtime.onnx_mlp import mlp_to_onnx
-        rng = np.random.default_rng(1)
-        model.segments[0].decoder = mlp_to_onnx([rng.normal(0, 0.5, (8, 12)).astype(np.float32),
-                                                 rng.normal(0, 0.5, (3, 8)).astype(np.float32)])
+    if kind == "full-unfused":  # a 12 -> 8 -> 3 decoder: not fused, run by onnxruntime
+        model.segments[0].decoder = _other_decoder(1)
     camera = model.cameras[0]
     cuda_player = Player(model, device="cuda")
     assert cuda_player.device == "cuda"
@@ -165,7 +218,9 @@ def test_player_cuda_matches_cpu(kind):
         np.testing.assert_allclose(g, w, atol=TOL, rtol=0, err_msg=name)
     assert want.alpha.max() > 0.5
     if kind.startswith("full"):  # which decoder path ran
-        assert (cuda_player._fused[id(model.segments[0])] is None) == (kind == "full-unfused")
+        from stg_runtime.decoder_cuda import FusedDecoder, OnnxDeviceDecoder
+        ran = type(cuda_player._device_decoders[id(model.segments[0])])
+        assert ran is (OnnxDeviceDecoder if kind == "full-unfused" else FusedDecoder)
     rgb = cuda_player.render(camera, 0.5 * model.duration, out="device")
     assert splat_cuda.is_device_array(rgb)
     np.testing.assert_allclose(rgb.copy_to_host(), want.rgb, atol=TOL, rtol=0)
@@ -204,4 +259,4 @@ def test_kernels_under_simulator():
                          cwd=root, env=env, capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stdout[-4000:] + out.stderr[-2000:]
     last = out.stdout.strip().splitlines()[-1]
-    assert "16 passed" in last and "failed" not in last, last
+    assert "18 passed" in last and "failed" not in last, last

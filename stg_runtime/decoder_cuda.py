@@ -1,0 +1,201 @@
+"""Colour on the GPU (numba.cuda): the decoder of formats/stg-v1.md, section 2, applied to a splatted
+feature image that stays on the device.
+
+    lite_colour(features_d) -> rgb_d                  lite and "sh" models: clamp(F[..., :3], 0, 1)
+    FusedDecoder.from_onnx(onnx, activation)          the 12 -> 6 -> 3 MatMul/Relu graph, one thread
+        (features_d, camera) -> rgb_d                 per pixel, weights read out of the graph
+    OnnxDeviceDecoder(onnx, activation)               any decoder graph the format allows, run by
+        (features_d, camera) -> rgb_d                 onnxruntime: its CUDA provider where installed
+
+features_d: (H, W, C) float32 device array; rgb_d: (H, W, 3) float32 device array in [0, 1]. The
+fused decoder is the fast path; OnnxDeviceDecoder is its reference and runs the graphs it cannot fuse.
+OnnxDeviceDecoder builds the decoder's input rows [F[3:], camera centre, ray] on the device; with
+onnxruntime's CUDAExecutionProvider (the onnxruntime-gpu package) and a real GPU it binds those device
+buffers to the session (IOBinding), so nothing leaves the GPU; otherwise the rows are copied to the host,
+run on the CPU provider and the result copied back.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import cuda
+
+from .camera import Camera
+from .cuda_math import dmax, dmin
+from .decoder import Decoder
+from .splat_cuda import simulated
+
+CUDA_PROVIDER = "CUDAExecutionProvider"
+
+
+def _grid2d(W, H, block=16):
+    return (-(-W // block), -(-H // block)), (block, block)
+
+
+@cuda.jit(device=True)
+def _ray(R, fx, fy, cx, cy, ix, iy, k):
+    """Component k of the unit world-space ray through pixel centre (ix, iy): R^T d (float64)."""
+    du = (ix + 0.5 - cx) / fx
+    dv = (iy + 0.5 - cy) / fy
+    return (R[0, k] * du + R[1, k] * dv + R[2, k]) / math.sqrt(du * du + dv * dv + 1.0)
+
+
+@cuda.jit
+def _decode(features, w1, w2, center, R, fx, fy, cx, cy, sigmoid, rgb):
+    """One thread per pixel: rgb = act(F[:3] + W2 relu(W1 [F[3:], centre, ray])), clamped to [0, 1]."""
+    ix, iy = cuda.grid(2)
+    if iy >= rgb.shape[0] or ix >= rgb.shape[1]:
+        return
+    x = cuda.local.array(12, np.float32)
+    for c in range(6):
+        x[c] = features[iy, ix, 3 + c]
+    for k in range(3):
+        x[6 + k] = center[k]
+        x[9 + k] = _ray(R, fx, fy, cx, cy, ix, iy, k)
+    h = cuda.local.array(6, np.float32)
+    for j in range(6):
+        s = np.float32(0.0)
+        for c in range(12):
+            s += w1[j, c] * x[c]
+        h[j] = dmax(s, np.float32(0.0))
+    for j in range(3):
+        s = np.float32(0.0)
+        for c in range(6):
+            s += w2[j, c] * h[c]
+        s += features[iy, ix, j]
+        if sigmoid:
+            s = np.float32(1.0) / (np.float32(1.0) + math.exp(-s))
+        rgb[iy, ix, j] = dmin(dmax(s, np.float32(0.0)), np.float32(1.0))
+
+
+@cuda.jit
+def _decoder_rows(features, center, R, fx, fy, cx, cy, rows):
+    """rows[p] = [F[p, 3:], centre, ray] (p = iy * W + ix), the ONNX decoder's input, float32."""
+    ix, iy = cuda.grid(2)
+    H, W, C = features.shape
+    if iy >= H or ix >= W:
+        return
+    p = iy * W + ix
+    for c in range(3, C):
+        rows[p, c - 3] = features[iy, ix, c]
+    for k in range(3):
+        rows[p, C - 3 + k] = center[k]
+        rows[p, C + k] = _ray(R, fx, fy, cx, cy, ix, iy, k)
+
+
+@cuda.jit
+def _add_base(features, y, sigmoid, rgb):
+    """rgb = act(F[:3] + y), clamped to [0, 1]; y (H * W, 3) the decoder's output."""
+    ix, iy = cuda.grid(2)
+    if iy >= rgb.shape[0] or ix >= rgb.shape[1]:
+        return
+    p = iy * rgb.shape[1] + ix
+    for j in range(3):
+        s = features[iy, ix, j] + y[p, j]
+        if sigmoid:
+            s = np.float32(1.0) / (np.float32(1.0) + math.exp(-s))
+        rgb[iy, ix, j] = dmin(dmax(s, np.float32(0.0)), np.float32(1.0))
+
+
+@cuda.jit
+def _lite(features, rgb):
+    ix, iy = cuda.grid(2)
+    if iy < rgb.shape[0] and ix < rgb.shape[1]:
+        for j in range(3):
+            rgb[iy, ix, j] = dmin(dmax(features[iy, ix, j], np.float32(0.0)), np.float32(1.0))
+
+
+def lite_colour(features_d):
+    """Device (H, W, C) features -> device (H, W, 3) rgb = clamp(F[..., :3], 0, 1)."""
+    H, W = features_d.shape[:2]
+    rgb = cuda.device_array((H, W, 3), np.float32)
+    _lite[_grid2d(W, H)](features_d, rgb)
+    return rgb
+
+
+def _camera_args(camera: Camera):
+    return (cuda.to_device(np.asarray(camera.center, np.float64)), cuda.to_device(np.ascontiguousarray(camera.R)),
+            float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy))
+
+
+class FusedDecoder:
+    """The full model's decoder on the device: weights [W1 (6, 12), W2 (3, 6)] as given by
+    onnx_mlp.mlp_weights (the format's 12 -> 6 -> 3 MatMul/Relu graph), activation "sigmoid", "clamp"
+    or "identity" (the last two: clamped to [0, 1] only)."""
+
+    def __init__(self, weights, activation: str):
+        if (len(weights) != 2 or tuple(weights[0].shape) != (6, 12) or tuple(weights[1].shape) != (3, 6)):
+            raise ValueError("the fused decoder needs the 12 -> 6 -> 3 MatMul/Relu graph, got layers "
+                             f"{[tuple(w.shape) for w in weights]}")
+        self.w1 = cuda.to_device(np.ascontiguousarray(weights[0], np.float32))
+        self.w2 = cuda.to_device(np.ascontiguousarray(weights[1], np.float32))
+        self.sigmoid = activation == "sigmoid"
+
+    @classmethod
+    def from_onnx(cls, onnx_bytes: bytes, activation: str):
+        """A FusedDecoder, or None if the graph is not the 12 -> 6 -> 3 MatMul/Relu shape."""
+        from .onnx_mlp import mlp_weights
+        weights = mlp_weights(onnx_bytes)
+        if weights is None or len(weights) != 2 or weights[0].shape != (6, 12) or weights[1].shape != (3, 6):
+            return None
+        return cls(weights, activation)
+
+    def __call__(self, features_d, camera: Camera):
+        """Device (H, W, 9) features -> device (H, W, 3) rgb in [0, 1]."""
+        H, W, C = features_d.shape
+        if C != 9:
+            raise ValueError(f"the fused decoder expects 9 feature channels, got {C}")
+        rgb = cuda.device_array((H, W, 3), np.float32)
+        _decode[_grid2d(W, H)](features_d, self.w1, self.w2, *_camera_args(camera), self.sigmoid, rgb)
+        return rgb
+
+
+def cuda_provider_available() -> bool:
+    """Whether onnxruntime offers its CUDA provider (onnxruntime-gpu) and numba sees a real GPU."""
+    import onnxruntime as ort
+    return not simulated() and CUDA_PROVIDER in ort.get_available_providers()
+
+
+def run_bound(decoder: Decoder, device_type: str, rows_ptr: int, rows: int, out_ptr: int) -> None:
+    """Run `decoder`'s session on buffers it does not own (onnxruntime IOBinding): float32 input
+    (rows, channels) at address rows_ptr, float32 output (rows, 3) written at out_ptr; device_type
+    "cuda" (device 0) or "cpu". The caller keeps both buffers alive and, for "cuda", synchronised."""
+    binding = decoder.session.io_binding()
+    binding.bind_input(decoder.input_name, device_type, 0, np.float32, [rows, decoder.input_channels], rows_ptr)
+    binding.bind_output(decoder.output_name, device_type, 0, np.float32, [rows, 3], out_ptr)
+    decoder.session.run_with_iobinding(binding)
+
+
+class OnnxDeviceDecoder:
+    """A segment's ONNX decoder (any graph the format allows) applied to a device feature image.
+
+    With onnxruntime's CUDA provider (see cuda_provider_available) the session runs on the GPU on the
+    device buffers themselves; otherwise on the CPU provider, through one copy each way.
+    """
+
+    def __init__(self, onnx_bytes: bytes, activation: str):
+        self.on_device = cuda_provider_available()
+        providers = (CUDA_PROVIDER, "CPUExecutionProvider") if self.on_device else ("CPUExecutionProvider",)
+        self.decoder = Decoder(onnx_bytes, activation, providers=providers)
+        self.sigmoid = activation == "sigmoid"
+
+    def __call__(self, features_d, camera: Camera):
+        """Device (H, W, C) features -> device (H, W, 3) rgb in [0, 1]."""
+        H, W, C = features_d.shape
+        if C + 3 != self.decoder.input_channels:
+            raise ValueError(f"decoder expects {self.decoder.input_channels - 3} feature channels, got {C}")
+        grid = _grid2d(W, H)
+        rows = cuda.device_array((H * W, C + 3), np.float32)
+        _decoder_rows[grid](features_d, *_camera_args(camera), rows)
+        if self.on_device:
+            y = cuda.device_array((H * W, 3), np.float32)
+            cuda.synchronize()  # onnxruntime runs on a stream of its own
+            run_bound(self.decoder, "cuda", rows.__cuda_array_interface__["data"][0], H * W,
+                      y.__cuda_array_interface__["data"][0])
+        else:
+            (y,) = self.decoder.session.run(None, {self.decoder.input_name: rows.copy_to_host()})
+            y = cuda.to_device(np.ascontiguousarray(y, np.float32))
+        rgb = cuda.device_array((H, W, 3), np.float32)
+        _add_base[grid](features_d, y, self.sigmoid, rgb)
+        return rgb
