@@ -47,6 +47,8 @@ def main() -> None:
     ap.add_argument("--data", default=os.path.join(tempfile.gettempdir(), "stg-bench-scene"))
     ap.add_argument("--out", default=None, help="where model.stg and bench.json go (default: a temp folder)")
     args = ap.parse_args()
+    if args.device == "cuda" and not torch.cuda.is_available():
+        raise SystemExit(f"bench/train.py --device cuda: torch {torch.__version__} sees no CUDA GPU here")
     torch.set_num_threads(args.threads)
     d = DEMO_DEFAULTS
     data = Path(args.data)
