@@ -22,7 +22,6 @@ import argparse
 import json
 import os
 import tempfile
-import time
 from pathlib import Path
 
 import stg_train  # noqa: F401  (first: it configures OpenMP before torch loads)
