@@ -178,6 +178,8 @@ class OnnxDeviceDecoder:
         self.on_device = cuda_provider_available()
         providers = (CUDA_PROVIDER, "CPUExecutionProvider") if self.on_device else ("CPUExecutionProvider",)
         self.decoder = Decoder(onnx_bytes, activation, providers=providers)
+        # onnxruntime falls back to the CPU when the CUDA provider cannot load (missing CUDA libraries).
+        self.on_device = CUDA_PROVIDER in self.decoder.session.get_providers()
         self.sigmoid = activation == "sigmoid"
 
     def __call__(self, features_d, camera: Camera):
