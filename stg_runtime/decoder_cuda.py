@@ -1,6 +1,8 @@
 """Colour on the GPU (numba.cuda): the decoder of formats/stg-v1.md, section 2, applied to a splatted
 feature image that stays on the device.
 
+    sh_colours(coeffs_d, means_d, center) -> rgb_d   "sh" models, per Gaussian before splatting:
+                                                      (M, 3 K) SH coefficients -> (M, 3) colours
     lite_colour(features_d) -> rgb_d                  lite and "sh" models: clamp(F[..., :3], 0, 1)
     FusedDecoder.from_onnx(onnx, activation)          the 12 -> 6 -> 3 MatMul/Relu graph, one thread
         (features_d, camera) -> rgb_d                 per pixel, weights read out of the graph
@@ -24,6 +26,7 @@ from numba import cuda
 from .camera import Camera
 from .cuda_math import dmax, dmin
 from .decoder import Decoder
+from .sh import C0 as SH_C0, C1 as SH_C1, C2 as SH_C2, C3 as SH_C3, degree_of
 from .splat_cuda import simulated
 
 CUDA_PROVIDER = "CUDAExecutionProvider"
@@ -112,6 +115,46 @@ def lite_colour(features_d):
     rgb = cuda.device_array((H, W, 3), np.float32)
     _lite[_grid2d(W, H)](features_d, rgb)
     return rgb
+
+
+@cuda.jit
+def _sh(coeffs, means, center, out):
+    """One thread per Gaussian: stg_runtime.sh's colour, max(sum_k Y_k(dir) c_k + 0.5, 0), in float64."""
+    i = cuda.grid(1)
+    if i >= coeffs.shape[0]:
+        return
+    dx = np.float64(means[i, 0]) - center[0]
+    dy = np.float64(means[i, 1]) - center[1]
+    dz = np.float64(means[i, 2]) - center[2]
+    norm = math.sqrt(dx * dx + dy * dy + dz * dz)
+    if norm > 0.0:
+        dx, dy, dz = dx / norm, dy / norm, dz / norm
+    x, y, z = dx, dy, dz
+    xx, yy, zz = x * x, y * y, z * z
+    b = cuda.local.array(16, np.float64)
+    b[0] = SH_C0
+    b[1], b[2], b[3] = -SH_C1 * y, SH_C1 * z, -SH_C1 * x
+    b[4], b[5], b[6] = SH_C2[0] * x * y, SH_C2[1] * y * z, SH_C2[2] * (2.0 * zz - xx - yy)
+    b[7], b[8] = SH_C2[3] * x * z, SH_C2[4] * (xx - yy)
+    b[9], b[10] = SH_C3[0] * y * (3.0 * xx - yy), SH_C3[1] * x * y * z
+    b[11], b[12] = SH_C3[2] * y * (4.0 * zz - xx - yy), SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy)
+    b[13], b[14], b[15] = SH_C3[4] * x * (4.0 * zz - xx - yy), SH_C3[5] * z * (xx - yy), SH_C3[6] * x * (xx - 3.0 * yy)
+    for c in range(3):
+        s = 0.0
+        for k in range(coeffs.shape[1] // 3):
+            s += b[k] * coeffs[i, 3 * k + c]
+        out[i, c] = dmax(s + 0.5, 0.0)
+
+
+def sh_colours(coeffs_d, means_d, center):
+    """Device (M, 3 K) SH coefficients (K = 1, 4, 9 or 16; layout of stg_runtime.sh) and (M, 3) means,
+    camera centre (3,) -> device (M, 3) float32 colours, as stg_runtime.sh.sh_colours."""
+    degree_of(coeffs_d.shape[1])
+    m = coeffs_d.shape[0]
+    out = cuda.device_array((m, 3), np.float32)
+    if m:
+        _sh[-(-m // 256), 256](coeffs_d, means_d, cuda.to_device(np.asarray(center, np.float64).reshape(3)), out)
+    return out
 
 
 def _camera_args(camera: Camera):

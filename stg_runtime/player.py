@@ -128,19 +128,17 @@ class Player:
     def _render_cuda(self, segment: Segment, tau: float, camera: Camera, out: str) -> Rendered:
         """Time evaluation, splatting and colour with the numba.cuda kernels, on segments uploaded once.
         The colour of full models is the fused decoder, except for decoder graphs other than
-        12 -> 6 -> 3 MatMul/Relu (decoder_cuda.OnnxDeviceDecoder: onnxruntime). "sh" models evaluate
-        time and their per-Gaussian colours on the host (stg_runtime.timeeval, stg_runtime.sh), then
-        upload them."""
+        12 -> 6 -> 3 MatMul/Relu (decoder_cuda.OnnxDeviceDecoder: onnxruntime). "sh" models get their
+        per-Gaussian colours for this view on the device (decoder_cuda.sh_colours) before splatting."""
         from . import decoder_cuda, splat_cuda
+        from .timeeval_cuda import DeviceSegment
+        key = id(segment)
+        if key not in self._device_segments:
+            self._device_segments[key] = DeviceSegment(segment)
+        gaussians = self._device_segments[key].evaluate(tau)
         if self.model.kind == "sh":
-            g = evaluate(segment, tau)
-            gaussians = (g.means, g.quats, g.scales, g.opacities, sh_colours(g.features, g.means, camera.center))
-        else:
-            from .timeeval_cuda import DeviceSegment
-            key = id(segment)
-            if key not in self._device_segments:
-                self._device_segments[key] = DeviceSegment(segment)
-            gaussians = self._device_segments[key].evaluate(tau)
+            means, coeffs = gaussians[0], gaussians[4]
+            gaussians = (*gaussians[:4], decoder_cuda.sh_colours(coeffs, means, camera.center))
         features, alpha, depth = splat_cuda.rasterize(*gaussians, camera, out="device")
         if self.model.kind in ("lite", "sh"):
             rgb = decoder_cuda.lite_colour(features)

@@ -171,6 +171,43 @@ def test_device_decoders_match_onnxruntime_on_the_host():
         onnx(cuda.to_device(np.zeros((2, 3, 6), np.float32)), camera)
 
 
+@needs_kernels
+def test_sh_colours_match_reference():
+    from numba import cuda
+
+    from stg_runtime.decoder_cuda import sh_colours
+    from stg_runtime.sh import sh_colours_reference
+    rng = np.random.default_rng(3)
+    means = rng.normal(size=(40, 3)).astype(np.float32)
+    means[0] = [0.5, -1.0, 2.0]  # at the camera centre: the zero direction
+    for k in (1, 4, 9, 16):
+        coeffs = rng.normal(0, 2.0, (40, 3 * k)).astype(np.float32)
+        got = sh_colours(cuda.to_device(coeffs), cuda.to_device(means), (0.5, -1.0, 2.0)).copy_to_host()
+        want = sh_colours_reference(coeffs, means, (0.5, -1.0, 2.0))
+        np.testing.assert_allclose(got, want, atol=1e-5, rtol=1e-6, err_msg=f"K = {k}")
+        assert (want == 0).any() and (want > 0.5).any()  # some colours clamp at 0
+    with pytest.raises(ValueError, match="not an SH layout"):
+        sh_colours(cuda.to_device(np.zeros((2, 9), np.float32)), cuda.to_device(means[:2]), (0, 0, 0))
+
+
+@needs_gpu
+def test_onnxruntime_cuda_provider_decoder_on_gpu():
+    """Where onnxruntime-gpu is installed, OnnxDeviceDecoder runs on the device buffers."""
+    from numba import cuda
+
+    from stg_runtime.decoder import Decoder
+    from stg_runtime.decoder_cuda import OnnxDeviceDecoder, cuda_provider_available
+    if not cuda_provider_available():
+        pytest.skip("onnxruntime without its CUDA provider (the onnxruntime-gpu package)")
+    arrays, camera, _ = _scene(10, M, 9)
+    features = splat_cuda.rasterize(*arrays, camera)[0] * 3.0
+    other = _other_decoder(4)
+    decoder = OnnxDeviceDecoder(other, "sigmoid")
+    assert decoder.on_device
+    np.testing.assert_allclose(decoder(cuda.to_device(features), camera).copy_to_host(),
+                               Decoder(other, "sigmoid")(features, camera), atol=1e-5, rtol=0)
+
+
 def test_bound_session_run_matches_plain_run():
     """The IOBinding call the CUDA provider path makes, on host buffers with the CPU provider (the same
     binding; only the device type differs)."""
@@ -259,4 +296,4 @@ def test_kernels_under_simulator():
                          cwd=root, env=env, capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stdout[-4000:] + out.stderr[-2000:]
     last = out.stdout.strip().splitlines()[-1]
-    assert "18 passed" in last and "failed" not in last, last
+    assert "19 passed" in last and "failed" not in last, last

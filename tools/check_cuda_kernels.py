@@ -44,6 +44,7 @@ SIGNATURES = {
         "_decoder_rows": (f32_3, f64_1, f64_2, F, F, F, F, f32_2),
         "_add_base": (f32_3, f32_2, B, f32_3),
         "_lite": (f32_3, f32_3),
+        "_sh": (f32_2, f32_2, f64_1, f32_2),
     },
     "sort_cuda": {
         "_scan_tiles": [(i32_1, i64_1, i64_1), (i64_1, i64_1, i64_1)],
