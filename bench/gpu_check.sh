@@ -1,14 +1,16 @@
 #!/usr/bin/env bash
 # Every check that needs a real NVIDIA GPU, in one run (at most 9.5 minutes: each step has its own time
-# limit; gsplat's first build is in the second), with its logs in one folder:
+# limit), with its logs in one folder (at most 8 files):
 #
 #   bash bench/gpu_check.sh [OUTDIR]      (default: $OUT if set, else out/gpu_check)
 #
 # 1. the GPU tests: tests/test_splat_cuda.py and tests/test_sort_cuda.py run their kernels on the GPU
-#    (not the simulator), tests/test_gsplat_backend.py compares gsplat with the torch splatter;
+#    (not the simulator);
 # 2. bench/render.py --device cuda at the paper's N3V test size (200k Gaussians, 1352x1014): FPS of
-#    lite and full models, the steps, both device sorts and decoders, gsplat beside them;
-# 3. bench/train.py on the GPU with the torch splatter and with gsplat (a short run).
+#    lite and full models, the steps, both device sorts and decoders;
+# 3. gsplat (its kernels compile on first use): tests/test_gsplat_backend.py compares it with the torch
+#    splatter, then the render benchmark again with gsplat's rasterization beside ours;
+# 4. bench/train.py on the GPU with the torch splatter and with gsplat (a short run).
 #
 # It uses the checkout in place (PYTHONPATH, no install). Wheels in .whl/ (gsplat, say: `pip download
 # --no-deps gsplat==1.5.3 -d .whl`) are installed into a scratch folder first. Each step has its own
@@ -34,16 +36,20 @@ export MAX_JOBS=${MAX_JOBS:-16}  # gsplat's first use compiles its CUDA kernels
   $py -c "import cupy; print('cupy', cupy.__version__)" 2>&1 | tail -1
 } 2>&1 | tee "$out/gpu.txt"
 
-timeout 150 $py -m pytest -q -rs -p no:cacheprovider tests/test_splat_cuda.py tests/test_sort_cuda.py 2>&1 \
+# Ours first, so that gsplat's build (minutes, on its first use) cannot cost our figures.
+timeout 120 $py -m pytest -q -rs -p no:cacheprovider tests/test_splat_cuda.py tests/test_sort_cuda.py 2>&1 \
     | tee "$out/tests.log"
 status=${PIPESTATUS[0]}
-timeout 200 $py -m pytest -q -rs -p no:cacheprovider tests/test_gsplat_backend.py 2>&1 | tee "$out/tests_gsplat.log"
+timeout 90 $py bench/render.py --device cuda --gaussians 200000 --size 1352x1014 --repeats 30 --no-gsplat \
+    2>&1 | tee "$out/render.log"
 
-timeout 120 $py bench/render.py --device cuda --gaussians 200000 --size 1352x1014 --repeats 30 2>&1 \
-    | tee "$out/render.log"
+# gsplat: its build and GPU test, then the render benchmark again with gsplat beside ours.
+timeout 190 $py -m pytest -q -rs -p no:cacheprovider tests/test_gsplat_backend.py 2>&1 | tee "$out/tests_gsplat.log"
+timeout 80 $py bench/render.py --device cuda --gaussians 200000 --size 1352x1014 --repeats 30 2>&1 \
+    | tee "$out/render_gsplat.log"
 
 for splatter in torch gsplat; do
-    timeout 50 $py bench/train.py --device cuda --splatter $splatter --threads 16 --iterations 300 \
+    timeout 40 $py bench/train.py --device cuda --splatter $splatter --threads 16 --iterations 300 \
         --eval-every 100 --data /tmp/stg_scene 2>&1 | tee "$out/train_$splatter.log"
 done
 exit "$status"

@@ -3,7 +3,7 @@
 breakdown (time evaluation, splatting, decoder), beside the float64 numpy reference splatter.
 
     python bench/render.py [--gaussians 100000] [--size 640x360] [--repeats 20] [--threads N]
-    python bench/render.py --device cuda [--gaussians 200000] [--size 1352x1014]
+    python bench/render.py --device cuda [--gaussians 200000] [--size 1352x1014] [--no-gsplat]
 
 --device cuda times the numba.cuda path (stg_runtime.splat_cuda: Player(device="cuda") with
 render(out="device"), i.e. without the copy to the host) and its steps (the splat with either device
@@ -89,7 +89,7 @@ def cuda_main(args) -> None:
             t_dec = gpu_seconds(lambda: fused(feats, cam), args.repeats)
             onnx = OnnxDeviceDecoder(seg.decoder, seg.activation)
             t_onnx = gpu_seconds(lambda: onnx(feats, cam), args.repeats)
-        t_gsplat = _gsplat_seconds([a.copy_to_host() for a in g], cam, args.repeats)
+        t_gsplat = _gsplat_seconds([a.copy_to_host() for a in g], cam, args.repeats) if args.gsplat else None
         gs = f"{1000 * t_gsplat:>11.2f}" if t_gsplat else f"{'n/a':>11}"
         print(f"{kind:<8}{1 / total:>8.1f}{1000 * total:>10.2f}{1000 * t_eval:>9.2f}{1000 * t_splat:>10.2f}"
               f"{1000 * t_numba_sort:>12.2f}{1000 * t_dec:>11.2f}{1000 * t_onnx:>9.2f}{gs}")
@@ -136,6 +136,8 @@ def main() -> None:
     ap.add_argument("--reference-gaussians", type=int, default=2000)
     ap.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
                     help="cuda: time the numba.cuda path on the GPU (needs a real GPU)")
+    ap.add_argument("--no-gsplat", dest="gsplat", action="store_false",
+                    help="with --device cuda: skip gsplat (whose first use compiles its kernels)")
     args = ap.parse_args()
     if args.device == "cuda":
         return cuda_main(args)
