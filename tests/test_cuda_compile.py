@@ -1,6 +1,6 @@
 """Every numba.cuda kernel compiles for the CUDA target (typing and lowering to PTX), without a GPU:
 the check the simulator-run kernel tests (tests/test_splat_cuda.py) cannot make. Skipped where NVIDIA's
-NVVM library is not installed (the `[test]` extra brings it on Linux)."""
+NVVM library is not installed (a CUDA toolkit, or numba-cuda's [cu12]/[cu13] extra, brings it)."""
 from __future__ import annotations
 
 import os

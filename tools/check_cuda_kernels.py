@@ -4,9 +4,9 @@ the CUDA target, which numba's simulator (the CPU test suite's GPU path) never r
 
     python tools/check_cuda_kernels.py [--cc 8.0]
 
-Needs NVIDIA's NVVM compiler library, no GPU and no driver: numba's own CUDA target finds it in the
-`nvidia-cuda-nvcc-cu12` wheel (part of the `[test]` extra on Linux); numba-cuda in its `[cu12]` or
-`[cu13]` extra. Each kernel is compiled for the argument types its Python wrapper launches it with
+Needs NVIDIA's NVVM compiler library, no GPU and no driver: numba's own CUDA target finds it in a CUDA
+toolkit (/usr/local/cuda, or CUDA_HOME); numba-cuda also in its `[cu12]` or `[cu13]` extra's wheels.
+Each kernel is compiled for the argument types its Python wrapper launches it with
 (listed below: a kernel without an entry is an error, so the list stays complete). Exit status: 0 all
 compile, 1 some failed, 2 no NVVM here (nothing was checked). tests/test_cuda_compile.py runs it.
 """
