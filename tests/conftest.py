@@ -1,3 +1,48 @@
-# Import stg_train before any test module imports torch, so its OpenMP setting takes effect
-# (see stg_train/__init__.py).
+"""Shared fixtures. stg_train is imported before any test module imports torch, so that its OpenMP
+setting takes effect (see stg_train/__init__.py)."""
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
 import stg_train  # noqa: F401
+
+SIMULATOR = os.environ.get("NUMBA_ENABLE_CUDASIM") == "1"
+
+
+@pytest.fixture(scope="module")
+def two_torch_threads():
+    """At most two torch threads for a module's training tests (use with pytest.mark.usefixtures)."""
+    import torch
+    old = torch.get_num_threads()
+    torch.set_num_threads(min(2, old))
+    yield
+    torch.set_num_threads(old)
+
+
+@pytest.fixture(autouse=True)
+def _fast_simulator_threads():
+    """Under numba's CUDA simulator, whose block manager polls its threads, a GIL switch interval shorter
+    than the default 5 ms makes barriers several times faster. Restored after each test."""
+    old = sys.getswitchinterval()
+    if SIMULATOR:
+        sys.setswitchinterval(0.0005)
+    yield
+    sys.setswitchinterval(old)
+
+
+@pytest.fixture
+def run_under_simulator():
+    """run(test_file, passed): run a test file again in a subprocess with NUMBA_ENABLE_CUDASIM=1 (which
+    must be set before numba.cuda is first imported) and assert that exactly `passed` tests passed."""
+    def run(test_file: str, passed: int) -> None:
+        env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1")
+        out = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", test_file],
+                             cwd=Path(__file__).resolve().parent.parent, env=env, capture_output=True, text=True,
+                             timeout=600)
+        assert out.returncode == 0, out.stdout[-4000:] + out.stderr[-2000:]
+        last = out.stdout.strip().splitlines()[-1]
+        assert f"{passed} passed" in last and "failed" not in last, last
+    return run

@@ -18,12 +18,7 @@ SCENE = dict(num_cameras=4, num_frames=2, fps=2.0, width=96, height=72)
 QUIET = {"refine_start": 10 ** 6, "reset_every": 0, "outside_at": 0}
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _threads():
-    old = torch.get_num_threads()
-    torch.set_num_threads(min(2, old))
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("two_torch_threads")
 
 
 @pytest.fixture(scope="module")

@@ -29,12 +29,7 @@ ARGS = ["--segment-frames", "4", "--iterations", "10", "--points", "200", "--ini
         "--checkpoint-every", "5", "--quiet"]
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _threads():
-    old = torch.get_num_threads()
-    torch.set_num_threads(min(2, old))
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("two_torch_threads")
 
 
 @pytest.fixture(scope="module")

@@ -11,46 +11,21 @@ is skipped.
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from stg_runtime import sort_cuda
+from stg_runtime.splat_cuda import gpu_available
 
 SIM = os.environ.get("NUMBA_ENABLE_CUDASIM") == "1"
-
-
-def _gpu() -> bool:
-    if SIM:
-        return False
-    try:
-        from numba import cuda
-        return bool(cuda.is_available())
-    except Exception:  # noqa: BLE001 (a broken driver counts as no GPU)
-        return False
-
-
-GPU = _gpu()
+GPU = not SIM and gpu_available()
 RUN = SIM or GPU
 needs_kernels = pytest.mark.skipif(not RUN, reason="no GPU here: these run in the simulator subprocess "
                                                    "(test_under_simulator)")
 BIG = 3000 if SIM else 1_000_000  # the largest arrays: a few tiles in the simulator
 SMALL = {"_block": 4, "_items": 2}  # tiles of 8 elements: many blocks, deep scan recursion
 EXPECTED_PASSED = 37  # the tests this file runs under the simulator (see test_under_simulator)
-
-
-@pytest.fixture(autouse=True)
-def _fast_simulator_threads():
-    """The simulator's block manager polls its threads: a shorter GIL switch interval than the default
-    5 ms makes its barriers several times faster. Restored after each test."""
-    old = sys.getswitchinterval()
-    if SIM:
-        sys.setswitchinterval(0.0005)
-    yield
-    sys.setswitchinterval(old)
 
 
 def _dev(a):
@@ -187,13 +162,7 @@ def test_radix_sort_rejects_bad_arguments():
         sort_cuda.exclusive_scan(np.zeros(4, np.int64), _block=6)
 
 
-def test_under_simulator():
+def test_under_simulator(run_under_simulator):
     if RUN:
         pytest.skip("the kernels run directly in this process")
-    env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1")
-    root = Path(__file__).resolve().parent.parent
-    out = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", __file__],
-                         cwd=root, env=env, capture_output=True, text=True, timeout=600)
-    assert out.returncode == 0, out.stdout[-4000:] + out.stderr[-2000:]
-    last = out.stdout.strip().splitlines()[-1]
-    assert f"{EXPECTED_PASSED} passed" in last and "failed" not in last, last
+    run_under_simulator(__file__, passed=EXPECTED_PASSED)

@@ -9,7 +9,6 @@ numba sees a GPU the same tests run directly, on larger scenes, and the subproce
 from __future__ import annotations
 
 import os
-import subprocess
 import sys
 from pathlib import Path
 
@@ -34,17 +33,6 @@ needs_gpu = pytest.mark.skipif(not GPU, reason="needs a real CUDA GPU")
 TOL = 1e-4
 W, H = (16, 12) if SIM else (96, 64)  # the simulator is slow: tiny images
 M = 30 if SIM else 400
-
-
-@pytest.fixture(autouse=True)
-def _fast_simulator_threads():
-    """The simulator's block manager polls its threads: a GIL switch interval shorter than the default
-    5 ms makes its barriers several times faster. Restored after each test."""
-    old = sys.getswitchinterval()
-    if SIM:
-        sys.setswitchinterval(0.0005)
-    yield
-    sys.setswitchinterval(old)
 
 
 def _scene(seed, m, channels, **kwargs):
@@ -287,13 +275,7 @@ def test_cuda_without_gpu_is_refused_clearly():
         Player(demo_model("lite", num_frames=2), device="cpu").render(demo_model("lite").cameras[0], 0.0, out="device")
 
 
-def test_kernels_under_simulator():
+def test_kernels_under_simulator(run_under_simulator):
     if RUN:
         pytest.skip("the kernels run directly in this process")
-    env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1")
-    root = Path(__file__).resolve().parent.parent
-    out = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", __file__],
-                         cwd=root, env=env, capture_output=True, text=True, timeout=600)
-    assert out.returncode == 0, out.stdout[-4000:] + out.stderr[-2000:]
-    last = out.stdout.strip().splitlines()[-1]
-    assert "19 passed" in last and "failed" not in last, last
+    run_under_simulator(__file__, passed=19)
