@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import sys
 import time
+from contextlib import contextmanager
 
 
 class Progress:
@@ -69,6 +70,26 @@ class Progress:
         else:
             self.stream.write(line + "\n")
         self.stream.flush()
+
+
+@contextmanager
+def progress_callback(desc: str, enabled: bool = True):
+    """`with progress_callback("decode frames") as report: work(progress=report)`: a report(done, total)
+    callback for work that reports its own progress. The bar opens at the first report (nothing is drawn
+    when none comes, e.g. when the work was cached) and closes when the block ends."""
+    bar = None
+
+    def report(done: int, total: int) -> None:
+        nonlocal bar
+        if bar is None:
+            bar = Progress(total=total, desc=desc, enabled=enabled)
+        bar.update(done - bar.count)
+
+    try:
+        yield report
+    finally:
+        if bar is not None:
+            bar.close()
 
 
 def _fmt(v) -> str:

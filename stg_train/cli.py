@@ -161,24 +161,13 @@ def _add_layout_options(p: argparse.ArgumentParser) -> None:
 def load_dataset(path, downscale: int = 1, from_video: bool = False, quiet: bool = False, layout: str = "auto",
                  fps: float | None = None, test_camera: str | None = None):
     """stg_train.data.load_dataset with a progress bar while the frame cache is built."""
-    from stg_runtime.progress import Progress
+    from stg_runtime.progress import progress_callback
 
     from .data import load_dataset as load
 
-    bar = None
-
-    def report(done: int, total: int) -> None:
-        nonlocal bar
-        if bar is None:
-            bar = Progress(total=total, desc="decode frames", enabled=not quiet)
-        bar.update(done - bar.count)
-
-    try:
+    with progress_callback("decode frames", enabled=not quiet) as report:
         return load(path, layout, downscale, from_video=from_video, fps=fps, test_camera=test_camera,
                     progress=report)
-    finally:
-        if bar is not None:
-            bar.close()
 
 
 def default_init(dataset) -> str:
@@ -195,25 +184,14 @@ def _new_trainer(dataset, config, out: Path, quiet: bool = False):
     warnings (SfM found too few points) are printed as "stg-train: warning: ..." lines."""
     import warnings
 
-    from stg_runtime.progress import Progress
+    from stg_runtime.progress import progress_callback
 
     from .trainer import Trainer
 
-    bar = None
-
-    def report(done: int, total: int) -> None:
-        nonlocal bar
-        if bar is None:
-            bar = Progress(total=total, desc="structure from motion", enabled=not quiet)
-        bar.update(done - bar.count)
-
-    try:
+    with progress_callback("structure from motion", enabled=not quiet) as report:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             trainer = Trainer(dataset, config, out_dir=out, init_progress=report)
-    finally:
-        if bar is not None:
-            bar.close()
     for w in caught:
         print(f"stg-train: warning: {w.message}", file=sys.stderr)
     return trainer
