@@ -28,10 +28,9 @@ import stg_train  # noqa: F401  (first: it configures OpenMP before torch loads)
 import numpy as np
 import torch
 
-from stg_train.cli import DEMO_DEFAULTS, DEMO_TRAINING
+from stg_train.cli import DEMO_DEFAULTS, DEMO_TRAINING, ensure_demo_scene
 from stg_train.data import load_n3v
 from stg_train.metrics import image_metrics
-from stg_train.synthetic import SyntheticScene, write_n3v
 from stg_train.trainer import Trainer, TrainConfig
 
 #: name -> (table label, TrainConfig overrides)
@@ -75,9 +74,7 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     size = f"{args.cameras}x{args.frames}-{args.width}x{args.height}"
     data = Path(args.data or os.path.join(tempfile.gettempdir(), f"stg-ablation-scene-{size}"))
-    if not (data / "poses_bounds.npy").exists():
-        write_n3v(data, SyntheticScene(seed=0, duration=args.frames / d["fps"]), num_cameras=args.cameras,
-                  num_frames=args.frames, fps=d["fps"], width=args.width, height=args.height)
+    ensure_demo_scene(data, cameras=args.cameras, frames=args.frames, width=args.width, height=args.height)
     ds = load_n3v(data, prefer_png=True)
     print(f"{ds}; {args.iterations} iterations, {args.points} initial points, seed {args.seed}, "
           f"{args.threads} threads", flush=True)

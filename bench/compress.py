@@ -21,11 +21,10 @@ from pathlib import Path
 import stg_train  # noqa: F401  (first: it configures OpenMP before torch loads)
 from stg_runtime import format as stg_format
 from stg_runtime.player import Player
-from stg_train.cli import DEMO_DEFAULTS, DEMO_TRAINING
+from stg_train.cli import DEMO_TRAINING, ensure_demo_scene
 from stg_train.convert.compress import PRESETS, compress_file
 from stg_train.data import load_n3v
 from stg_train.metrics import evaluate_player
-from stg_train.synthetic import SyntheticScene, write_n3v
 
 
 def train(ds, out: Path, iterations: int, threads: int) -> Path:
@@ -50,12 +49,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", default=None, help="where the compressed files go (default: a temp folder)")
     args = ap.parse_args()
-    d = DEMO_DEFAULTS
-    data = Path(args.data)
-    if not (data / "poses_bounds.npy").exists():
-        write_n3v(data, SyntheticScene(seed=0, duration=d["frames"] / d["fps"]), num_cameras=d["cameras"],
-                  num_frames=d["frames"], fps=d["fps"], width=d["width"], height=d["height"])
-    ds = load_n3v(data, prefer_png=True)
+    ds = load_n3v(ensure_demo_scene(args.data), prefer_png=True)
     out = Path(args.out or tempfile.mkdtemp(prefix="stg-bench-compress-"))
     out.mkdir(parents=True, exist_ok=True)
     model_path = Path(args.model) if args.model else train(ds, out, args.iterations, args.threads)

@@ -26,11 +26,10 @@ from pathlib import Path
 import stg_train  # noqa: F401  (first: it configures OpenMP before torch loads)
 import torch
 
-from stg_train.cli import DEMO_DEFAULTS, DEMO_TRAINING
+from stg_train.cli import DEMO_TRAINING, ensure_demo_scene
 from stg_train.data import load_n3v
 from stg_train.export import export_trainer
 from stg_train.metrics import evaluate_player
-from stg_train.synthetic import SyntheticScene, write_n3v
 from stg_train.trainer import Trainer, TrainConfig
 from stg_runtime.player import Player
 
@@ -50,12 +49,7 @@ def main() -> None:
     if args.device == "cuda" and not torch.cuda.is_available():
         raise SystemExit(f"bench/train.py --device cuda: torch {torch.__version__} sees no CUDA GPU here")
     torch.set_num_threads(args.threads)
-    d = DEMO_DEFAULTS
-    data = Path(args.data)
-    if not (data / "poses_bounds.npy").exists():
-        write_n3v(data, SyntheticScene(seed=0, duration=d["frames"] / d["fps"]), num_cameras=d["cameras"],
-                  num_frames=d["frames"], fps=d["fps"], width=d["width"], height=d["height"])
-    ds = load_n3v(data, prefer_png=True)
+    ds = load_n3v(ensure_demo_scene(args.data), prefer_png=True)
     out = Path(args.out or tempfile.mkdtemp(prefix="stg-bench-"))
     cfg = TrainConfig(**{**DEMO_TRAINING, "iterations": args.iterations, "num_points": args.points,
                          "model": args.model, "device": args.device, "splatter": args.splatter})

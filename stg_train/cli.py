@@ -37,6 +37,23 @@ DEMO_DEFAULTS = {"cameras": 12, "frames": 30, "fps": 30.0, "width": 160, "height
 DEMO_TRAINING = {"iterations": 1500, "num_points": 8000}
 
 
+def ensure_demo_scene(data, announce: bool = False, **sizes) -> Path:
+    """The demo's synthetic scene, in the N3V layout, at `data`: written unless it is there already.
+    sizes: any of DEMO_DEFAULTS' cameras, frames, width, height to change; announce: say so on stderr
+    before writing."""
+    from .synthetic import SyntheticScene, write_n3v
+
+    d = {**DEMO_DEFAULTS, **sizes}
+    data = Path(data)
+    if not (data / "poses_bounds.npy").exists():
+        if announce:
+            print(f"writing the synthetic scene ({d['cameras']} cameras x {d['frames']} frames, "
+                  f"{d['width']}x{d['height']}) to {data}", file=sys.stderr)
+        write_n3v(data, SyntheticScene(seed=0, duration=d["frames"] / d["fps"]), num_cameras=d["cameras"],
+                  num_frames=d["frames"], fps=d["fps"], width=d["width"], height=d["height"])
+    return data
+
+
 def _positive_int(text: str) -> int:
     value = int(text)
     if value <= 0:
@@ -350,19 +367,11 @@ def demo_main(argv=None) -> int:
     from stg_runtime.camera import orbit
     from stg_runtime.player import Player
 
-    from .synthetic import SyntheticScene, write_n3v
     from .trainer import TrainConfig
 
     args = build_train_parser().parse_args(argv)
     out = Path(args.out or "stg-demo")
-    data = out / "data"
-    d = DEMO_DEFAULTS
-    if not (data / "poses_bounds.npy").exists():
-        if not args.quiet:
-            print(f"writing the synthetic scene ({d['cameras']} cameras x {d['frames']} frames, "
-                  f"{d['width']}x{d['height']}) to {data}", file=sys.stderr)
-        write_n3v(data, SyntheticScene(seed=0, duration=d["frames"] / d["fps"]), num_cameras=d["cameras"],
-                  num_frames=d["frames"], fps=d["fps"], width=d["width"], height=d["height"])
+    data = ensure_demo_scene(out / "data", announce=not args.quiet)
     import torch
 
     if args.threads:
