@@ -160,6 +160,29 @@ def build_frame_cache(cache_dir, signature: dict, shape: tuple, fill: Callable[[
     return np.load(path, mmap_mode="r")
 
 
+def common_frames(root, paths, labels, counts, sizes, num_frames: int | None = None) -> tuple[int, int, int]:
+    """(num_frames, width, height) shared by every camera's frame source, or DataError naming the file.
+
+    paths: each source's file or folder; labels: their short names (for listings); counts: their frame
+    counts; sizes: their (width, height). Without num_frames all counts must be equal; with it, every
+    source needs at least that many frames.
+    """
+    if num_frames is None:
+        if len(set(counts)) > 1:
+            listing = ", ".join(f"{lab}: {c} frames" for lab, c in zip(labels, counts))
+            raise DataError(f"{root}: cameras have different frame counts ({listing}); pass num_frames to use "
+                            f"the first {min(counts)}")
+        num_frames = counts[0]
+    else:
+        short = [(path, c) for path, c in zip(paths, counts) if c < num_frames]
+        if short:
+            raise DataError(f"{short[0][0]}: has {short[0][1]} frames, fewer than the {num_frames} asked for")
+    if len(set(sizes)) > 1:
+        listing = ", ".join(f"{lab}: {w}x{h}" for lab, (w, h) in zip(labels, sizes))
+        raise DataError(f"{root}: cameras have different frame sizes ({listing})")
+    return num_frames, *sizes[0]
+
+
 def file_signature(paths: Iterable[Path]) -> list:
     """[name, size, mtime_ns] of each file, for cache validation."""
     out = []

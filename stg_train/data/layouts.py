@@ -22,7 +22,7 @@ import numpy as np
 
 from stg_runtime.camera import Camera
 
-from .dataset import DataError, Dataset, build_frame_cache, file_signature
+from .dataset import DataError, Dataset, build_frame_cache, common_frames, file_signature
 
 LAYOUTS = ("n3v", "technicolor", "reference", "rig")
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg")
@@ -181,22 +181,9 @@ def build_dataset(root: Path, layout: str, cameras: Sequence[Camera], sources: S
         raise DataError(f"{root}: no camera named {test_camera!r} to hold out (cameras: {', '.join(names)})")
     probes = [probe(s) for s in sources]
     labels = [str(s.path.relative_to(root)) if s.path.is_relative_to(root) else str(s.path) for s in sources]
-    counts = [c for c, _, _, _ in probes]
-    if num_frames is None:
-        if len(set(counts)) > 1:
-            listing = ", ".join(f"{lab}: {c} frames" for lab, c in zip(labels, counts))
-            raise DataError(f"{root}: cameras have different frame counts ({listing}); pass num_frames to use "
-                            f"the first {min(counts)}")
-        num_frames = counts[0]
-    else:
-        short = [(s, c) for s, c in zip(sources, counts) if c < num_frames]
-        if short:
-            raise DataError(f"{short[0][0].path}: has {short[0][1]} frames, fewer than the {num_frames} asked for")
-    sizes = [(w, h) for _, w, h, _ in probes]
-    if len(set(sizes)) > 1:
-        listing = ", ".join(f"{lab}: {w}x{h}" for lab, (w, h) in zip(labels, sizes))
-        raise DataError(f"{root}: cameras have different frame sizes ({listing})")
-    width, height = sizes[0]
+    num_frames, width, height = common_frames(root, [s.path for s in sources], labels,
+                                              [c for c, _, _, _ in probes], [(w, h) for _, w, h, _ in probes],
+                                              num_frames)
     for cam, src in zip(cameras, sources):
         if (cam.width, cam.height) != (width, height):
             raise DataError(f"{src.path}: frames are {width}x{height} but camera {cam.name} is calibrated for "

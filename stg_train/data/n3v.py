@@ -18,7 +18,7 @@ import numpy as np
 
 from stg_runtime.camera import Camera
 
-from .dataset import DataError, Dataset, build_frame_cache, file_signature
+from .dataset import DataError, Dataset, build_frame_cache, common_frames, file_signature
 
 _VIDEO = re.compile(r"^cam(\d+)\.mp4$")
 _FOLDER = re.compile(r"^cam(\d+)$")
@@ -159,20 +159,7 @@ def load_n3v(path, downscale: int = 1, cache_dir=None, prefer_png: bool = False,
             counts.append(count)
         sizes.append((w, h))
     labels = [str(src.relative_to(root)) for src, _ in sources]
-    if num_frames is None:
-        if len(set(counts)) > 1:
-            listing = ", ".join(f"{lab}: {c} frames" for lab, c in zip(labels, counts))
-            raise DataError(f"{root}: cameras have different frame counts ({listing}); pass num_frames to use "
-                            f"the first {min(counts)}")
-        num_frames = counts[0]
-    else:
-        short = [(lab, c) for lab, c in zip(labels, counts) if c < num_frames]
-        if short:
-            raise DataError(f"{root / short[0][0]}: has {short[0][1]} frames, fewer than the {num_frames} asked for")
-    if len(set(sizes)) > 1:
-        listing = ", ".join(f"{lab}: {w}x{h}" for lab, (w, h) in zip(labels, sizes))
-        raise DataError(f"{root}: cameras have different frame sizes ({listing})")
-    width, height = sizes[0]
+    num_frames, width, height = common_frames(root, [src for src, _ in sources], labels, counts, sizes, num_frames)
     out_w, out_h = width // downscale, height // downscale
     if out_w < 1 or out_h < 1:
         raise ValueError(f"downscale {downscale} leaves no pixels of {width}x{height} frames")
