@@ -126,7 +126,8 @@ def test_radix_sort_default_tiles_many_passes():
     key_bits = 20 if SIM else 64  # every pass of a default block costs about a second in the simulator
     keys = np.random.default_rng(3).integers(0, 2**62, 40 if SIM else 500_000).astype(np.int64)
     keys[::3] = keys[0]
-    keys[1::3] &= (1 << key_bits) - 1  # sorted by the low bits only when key_bits < 64
+    low_bits = np.array((1 << key_bits) - 1, np.uint64).view(np.int64)  # all 64 bits: -1
+    keys[1::3] &= low_bits  # sorted by the low bits only when key_bits < 64
     _check_sort(keys, key_bits, with_values=False)
 
 
