@@ -70,7 +70,16 @@ def cuda_main(args) -> None:
           + ("CUDA provider" if cuda_provider_available() else "CPU provider, through the host") + "\n")
     print(f"{'model':<8}{'FPS':>8}{'ms/frame':>10}{'eval ms':>9}{'splat ms':>10}{'numba sort':>12}"
           f"{'decode ms':>11}{'onnx ms':>9}{'gsplat ms':>11}")
+
+    def step_ms(fn, repeats):
+        fn()
+        with splat_cuda.stage_seconds() as seconds:
+            for _ in range(repeats):
+                fn()
+        return {step: 1000 * s / repeats for step, s in seconds.items()}
+
     radius_px = tuple(float(v) for v in args.radius.split(","))
+    steps = []
     for kind in ("lite", "full"):
         model = random_model(args.gaussians, kind, width=w, height=h, radius_px=radius_px)
         player = Player(model, device="cuda")
@@ -82,6 +91,9 @@ def cuda_main(args) -> None:
         g = dseg.evaluate(0.5)
         t_splat = gpu_seconds(lambda: splat_cuda.rasterize(*g, cam, out="device"), args.repeats)
         t_numba_sort = gpu_seconds(lambda: splat_cuda.rasterize(*g, cam, out="device", sort="numba"), args.repeats)
+        for sort in ("auto", "numba"):
+            steps.append((f"{kind}, {sort} sort",
+                          step_ms(lambda: splat_cuda.rasterize(*g, cam, out="device", sort=sort), args.repeats)))
         t_dec = t_onnx = 0.0
         if kind == "full":
             feats = splat_cuda.rasterize(*g, cam, out="device")[0]
@@ -93,6 +105,12 @@ def cuda_main(args) -> None:
         gs = f"{1000 * t_gsplat:>11.2f}" if t_gsplat else f"{'n/a':>11}"
         print(f"{kind:<8}{1 / total:>8.1f}{1000 * total:>10.2f}{1000 * t_eval:>9.2f}{1000 * t_splat:>10.2f}"
               f"{1000 * t_numba_sort:>12.2f}{1000 * t_dec:>11.2f}{1000 * t_onnx:>9.2f}{gs}")
+    names = list(steps[0][1])
+    print("\nsplat steps, ms (the device synchronised after each step, so they add up to a little more than "
+          "the splat):")
+    print(f"{'':<20}" + "".join(f"{n:>13}" for n in names))
+    for label, ms in steps:
+        print(f"{label:<20}" + "".join(f"{ms.get(n, 0.0):>13.3f}" for n in names))
 
 
 def _gsplat_seconds(arrays, camera, repeats) -> float | None:

@@ -27,7 +27,7 @@ from .camera import Camera
 from .cuda_math import dmax, dmin
 from .decoder import Decoder
 from .sh import C0 as SH_C0, C1 as SH_C1, C2 as SH_C2, C3 as SH_C3, degree_of
-from .splat_cuda import simulated
+from .splat_cuda import camera_arrays, device_empty, simulated
 
 CUDA_PROVIDER = "CUDAExecutionProvider"
 
@@ -112,7 +112,7 @@ def _lite(features, rgb):
 def lite_colour(features_d):
     """Device (H, W, C) features -> device (H, W, 3) rgb = clamp(F[..., :3], 0, 1)."""
     H, W = features_d.shape[:2]
-    rgb = cuda.device_array((H, W, 3), np.float32)
+    rgb = device_empty((H, W, 3), np.float32)
     _lite[_grid2d(W, H)](features_d, rgb)
     return rgb
 
@@ -151,15 +151,15 @@ def sh_colours(coeffs_d, means_d, center):
     camera centre (3,) -> device (M, 3) float32 colours, as stg_runtime.sh.sh_colours."""
     degree_of(coeffs_d.shape[1])
     m = coeffs_d.shape[0]
-    out = cuda.device_array((m, 3), np.float32)
+    out = device_empty((m, 3), np.float32)
     if m:
         _sh[-(-m // 256), 256](coeffs_d, means_d, cuda.to_device(np.asarray(center, np.float64).reshape(3)), out)
     return out
 
 
 def _camera_args(camera: Camera):
-    return (cuda.to_device(np.asarray(camera.center, np.float64)), cuda.to_device(np.ascontiguousarray(camera.R)),
-            float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy))
+    R_d, _, center_d = camera_arrays(camera)
+    return center_d, R_d, float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy)
 
 
 class FusedDecoder:
@@ -189,7 +189,7 @@ class FusedDecoder:
         H, W, C = features_d.shape
         if C != 9:
             raise ValueError(f"the fused decoder expects 9 feature channels, got {C}")
-        rgb = cuda.device_array((H, W, 3), np.float32)
+        rgb = device_empty((H, W, 3), np.float32)
         _decode[_grid2d(W, H)](features_d, self.w1, self.w2, *_camera_args(camera), self.sigmoid, rgb)
         return rgb
 
@@ -231,16 +231,16 @@ class OnnxDeviceDecoder:
         if C + 3 != self.decoder.input_channels:
             raise ValueError(f"decoder expects {self.decoder.input_channels - 3} feature channels, got {C}")
         grid = _grid2d(W, H)
-        rows = cuda.device_array((H * W, C + 3), np.float32)
+        rows = device_empty((H * W, C + 3), np.float32)
         _decoder_rows[grid](features_d, *_camera_args(camera), rows)
         if self.on_device:
-            y = cuda.device_array((H * W, 3), np.float32)
+            y = device_empty((H * W, 3), np.float32)
             cuda.synchronize()  # onnxruntime runs on a stream of its own
             run_bound(self.decoder, "cuda", rows.__cuda_array_interface__["data"][0], H * W,
                       y.__cuda_array_interface__["data"][0])
         else:
             (y,) = self.decoder.session.run(None, {self.decoder.input_name: rows.copy_to_host()})
             y = cuda.to_device(np.ascontiguousarray(y, np.float32))
-        rgb = cuda.device_array((H, W, 3), np.float32)
+        rgb = device_empty((H, W, 3), np.float32)
         _add_base[grid](features_d, y, self.sigmoid, rgb)
         return rgb

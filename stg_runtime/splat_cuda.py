@@ -9,22 +9,27 @@ pipeline (everything stays on the device between kernels, except where said):
 1. _project (one thread per Gaussian): as splat_cpu._project, in float64: camera-space depth, the EWA
    2D covariance and conic, the 3-sigma radius, and the rectangle of pixel centres within the radius
    that can reach alpha >= 1/255, clipped to the image; a record of 7 float32 (mean u, v, conic A/2,
-   B, C/2, opacity, z), the rectangle (4 int32) and the number of tiles it meets (0: culled).
-2. Depth order: the kept Gaussians sorted by (depth, index), and the exclusive prefix sum of their
-   tile counts in that order. With CuPy installed (and a real GPU): cupy.argsort (stable) and
-   cupy.cumsum. Without CuPy (or with sort="numba"): stg_runtime.sort_cuda's stable radix sort of
-   the depths' float64 bit patterns (positive floats order as their bits; culled Gaussians get the
-   bits of +inf, so they sort last; stability orders ties by index) and its scan.
+   B, C/2, opacity, z), the rectangle (4 int32), the number of tiles it meets (0: culled) and its
+   sort depth (z, +inf when culled). The same launch clears the tile ranges.
+2. Depth order: the Gaussians sorted by (depth, index), culled ones last, and the exclusive prefix
+   sum of their tile counts in that order. With CuPy installed (and a real GPU): cupy.argsort
+   (stable) and cupy.cumsum. Without CuPy (or with sort="numba"): stg_runtime.sort_cuda's stable radix
+   sort of the depths' float64 bit patterns (positive floats and +inf order as their bits; stability
+   orders ties by index) and its scan.
 3. _duplicate (one thread per rank): one 64-bit key per (tile, Gaussian) pair, tile * K + rank
    (K the number of Gaussians, rank the Gaussian's place in the order); the keys are unique, and
-   sorting them (cupy.sort, or the radix sort over their bit length) gives every tile's list front
+   sorting them (CuPy's in place, or the radix sort over their bit length) gives every tile's list front
    to back; _ranges finds each tile's [start, end) and the Gaussian ids. Only the total pair count is
    copied to the host (to allocate the keys).
 4. _composite (one block per tile, one thread per pixel): Gaussians are loaded in batches of one per
    thread into shared memory and composited front to back with the spec's skip and stop rules in
    float32 (as splat_cpu: the pixel rectangle is the footprint test). Features are accumulated in
    registers, up to CHANNELS_PER_PASS channels per launch (more channels: more passes over the same
-   lists). A block ends once all its pixels have stopped (syncthreads_count).
+   lists; one kernel is compiled per channel count, so its loops unroll). A block ends once all its
+   pixels have stopped (syncthreads_count).
+
+With CuPy, every buffer comes from CuPy's memory pool (device_empty): numba's own allocations cost
+more than a frame's kernels. stage_seconds() times the steps (bench/render.py prints them).
 
 Colour on the device: stg_runtime.decoder_cuda; time evaluation: stg_runtime.timeeval_cuda.
 
@@ -33,7 +38,10 @@ kernels run on the CPU, slowly: the tests use it on tiny images.
 """
 from __future__ import annotations
 
+import functools
 import math
+import time
+from contextlib import contextmanager
 
 import numpy as np
 from numba import config as _numba_config
@@ -115,11 +123,17 @@ def require() -> None:
 
 @cuda.jit
 def _project(means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, width, height, tile_size,
-             packed, rect, depth, counts):
+             packed, rect, depth, counts, tile_range):
+    """Thread i: Gaussian i's record, rectangle, tile count and depth (+inf when culled); and tile i's
+    range set to empty (the grid covers max(M, number of tiles))."""
     i = cuda.grid(1)
+    if i < tile_range.shape[0]:
+        tile_range[i, 0] = 0
+        tile_range[i, 1] = 0
     if i >= means.shape[0]:
         return
     counts[i] = 0
+    depth[i] = math.inf
     tan_x = 0.3 * width / (2.0 * fx)
     tan_y = 0.3 * height / (2.0 * fy)
     wx = np.float64(means[i, 0])
@@ -128,7 +142,6 @@ def _project(means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, width, hei
     x = Rc[0, 0] * wx + Rc[0, 1] * wy + Rc[0, 2] * wz + tc[0]
     y = Rc[1, 0] * wx + Rc[1, 1] * wy + Rc[1, 2] * wz + tc[1]
     z = Rc[2, 0] * wx + Rc[2, 1] * wy + Rc[2, 2] * wz + tc[2]
-    depth[i] = z
     o = np.float64(opacities[i])
     if not (z > NEAR) or not (o >= MIN_ALPHA):
         return
@@ -205,6 +218,7 @@ def _project(means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, width, hei
     rect[i, 2] = v0
     rect[i, 3] = v1
     counts[i] = (u1 // tile_size - u0 // tile_size + 1) * (v1 // tile_size - v0 // tile_size + 1)
+    depth[i] = z
     idet = 1.0 / det
     packed[i, 0] = u
     packed[i, 1] = v
@@ -249,73 +263,108 @@ def _ranges(keys, order, tile_range, ids):
         tile_range[tile, 1] = e + 1
 
 
-@cuda.jit
-def _composite(packed, rect, features, tile_range, ids, ch0, tiles_x, width, height, out_f, out_a, out_d):
-    """Block = tile, thread = pixel: composite the tile's list front to back (spec section 3), channels
-    ch0 .. ch0 + CHANNELS_PER_PASS of features into out_f, plus out_a and out_d."""
-    ts = cuda.blockDim.x
-    n_threads = ts * cuda.blockDim.y
-    tile = cuda.blockIdx.x
-    tid = cuda.threadIdx.y * ts + cuda.threadIdx.x
-    ix = (tile % tiles_x) * ts + cuda.threadIdx.x
-    iy = (tile // tiles_x) * ts + cuda.threadIdx.y
-    inside = ix < width and iy < height
-    px = np.float32(ix) + np.float32(0.5)
-    py = np.float32(iy) + np.float32(0.5)
-    n_ch = dmin(CHANNELS_PER_PASS, features.shape[1] - ch0)
-    acc = cuda.local.array(CHANNELS_PER_PASS, np.float32)
-    for c in range(CHANNELS_PER_PASS):
-        acc[c] = np.float32(0.0)
-    s_rec = cuda.shared.array((_BATCH, 7), np.float32)
-    s_rect = cuda.shared.array((_BATCH, 4), np.int32)
-    s_id = cuda.shared.array(_BATCH, np.int32)
-    T = np.float32(1.0)
-    D = np.float32(0.0)
-    done = not inside
-    start = tile_range[tile, 0]
-    end = tile_range[tile, 1]
-    for batch in range(start, end, n_threads):
-        if cuda.syncthreads_count(np.int32(1) if done else np.int32(0)) == n_threads:
-            break
-        k = batch + tid
-        if k < end:  # one Gaussian per thread into shared memory
-            g = ids[k]
-            s_id[tid] = g
-            for q in range(7):
-                s_rec[tid, q] = packed[g, q]
-            for q in range(4):
-                s_rect[tid, q] = rect[g, q]
-        cuda.syncthreads()
-        for j in range(dmin(n_threads, end - batch)):
-            if done:
-                break
-            if ix < s_rect[j, 0] or ix > s_rect[j, 1] or iy < s_rect[j, 2] or iy > s_rect[j, 3]:
-                continue
-            dx = px - s_rec[j, 0]
-            dy = py - s_rec[j, 1]
-            power = dx * (s_rec[j, 2] * dx + s_rec[j, 3] * dy) + s_rec[j, 4] * dy * dy
-            if power < np.float32(0.0):
-                continue
-            alpha = dmin(MAX_ALPHA32, s_rec[j, 5] * math.exp(-power))
-            if alpha < MIN_ALPHA32:
-                continue
-            t_next = T * (np.float32(1.0) - alpha)
-            if t_next < T_STOP32:
-                done = True
-                break
-            w = alpha * T
-            D += w * s_rec[j, 6]
-            g = s_id[j]
-            for c in range(n_ch):
-                acc[c] += w * features[g, ch0 + c]
-            T = t_next
-        cuda.syncthreads()  # the batch is read before the next one is loaded
-    if inside:
+@functools.lru_cache(maxsize=None)
+def _compositor(n_ch: int):
+    """The compositing kernel for n_ch (1..CHANNELS_PER_PASS) channels per pass: with the count fixed
+    when it is compiled, the per-pixel sums stay in registers and the loops over channels unroll."""
+
+    @cuda.jit
+    def composite(packed, rect, features, tile_range, ids, ch0, tiles_x, width, height, out_f, out_a, out_d):
+        """Block = tile, thread = pixel: composite the tile's list front to back (spec section 3),
+        channels ch0 .. ch0 + n_ch of features into out_f, plus out_a and out_d."""
+        ts = cuda.blockDim.x
+        n_threads = ts * cuda.blockDim.y
+        tile = cuda.blockIdx.x
+        tid = cuda.threadIdx.y * ts + cuda.threadIdx.x
+        ix = (tile % tiles_x) * ts + cuda.threadIdx.x
+        iy = (tile // tiles_x) * ts + cuda.threadIdx.y
+        inside = ix < width and iy < height
+        px = np.float32(ix) + np.float32(0.5)
+        py = np.float32(iy) + np.float32(0.5)
+        acc = cuda.local.array(n_ch, np.float32)
         for c in range(n_ch):
-            out_f[iy, ix, ch0 + c] = acc[c]
-        a = np.float32(1.0) - T
-        out_a[iy, ix] = a
-        out_d[iy, ix] = D / a if a > np.float32(0.0) else np.float32(0.0)
+            acc[c] = np.float32(0.0)
+        s_rec = cuda.shared.array((_BATCH, 7), np.float32)
+        s_rect = cuda.shared.array((_BATCH, 4), np.int32)
+        s_feat = cuda.shared.array((_BATCH, n_ch), np.float32)
+        T = np.float32(1.0)
+        D = np.float32(0.0)
+        done = not inside
+        start = tile_range[tile, 0]
+        end = tile_range[tile, 1]
+        for batch in range(start, end, n_threads):
+            if cuda.syncthreads_count(np.int32(1) if done else np.int32(0)) == n_threads:
+                break
+            k = batch + tid
+            if k < end:  # one Gaussian per thread into shared memory
+                g = ids[k]
+                for q in range(7):
+                    s_rec[tid, q] = packed[g, q]
+                for q in range(4):
+                    s_rect[tid, q] = rect[g, q]
+                for c in range(n_ch):
+                    s_feat[tid, c] = features[g, ch0 + c]
+            cuda.syncthreads()
+            for j in range(dmin(n_threads, end - batch)):
+                if done:
+                    break
+                if ix < s_rect[j, 0] or ix > s_rect[j, 1] or iy < s_rect[j, 2] or iy > s_rect[j, 3]:
+                    continue
+                dx = px - s_rec[j, 0]
+                dy = py - s_rec[j, 1]
+                power = dx * (s_rec[j, 2] * dx + s_rec[j, 3] * dy) + s_rec[j, 4] * dy * dy
+                if power < np.float32(0.0):
+                    continue
+                alpha = dmin(MAX_ALPHA32, s_rec[j, 5] * math.exp(-power))
+                if alpha < MIN_ALPHA32:
+                    continue
+                t_next = T * (np.float32(1.0) - alpha)
+                if t_next < T_STOP32:
+                    done = True
+                    break
+                w = alpha * T
+                D += w * s_rec[j, 6]
+                for c in range(n_ch):
+                    acc[c] += w * s_feat[j, c]
+                T = t_next
+            cuda.syncthreads()  # the batch is read before the next one is loaded
+        if inside:
+            for c in range(n_ch):
+                out_f[iy, ix, ch0 + c] = acc[c]
+            a = np.float32(1.0) - T
+            out_a[iy, ix] = a
+            out_d[iy, ix] = D / a if a > np.float32(0.0) else np.float32(0.0)
+
+    return composite
+
+
+_composite = _compositor(CHANNELS_PER_PASS)  # (module level: tools/check_cuda_kernels.py compiles it)
+
+
+_STAGES: list = []  # the dict of an open stage_seconds() block
+
+
+@contextmanager
+def stage_seconds():
+    """Within the block, rasterize synchronises the device after each step and adds the step's
+    wall-clock seconds to the yielded dict (keys "inputs", "project", "depth order", "tile keys",
+    "tile sort", "ranges", "composite"); for benchmarks: the synchronisations cost time."""
+    times: dict = {}
+    _STAGES.append(times)
+    try:
+        yield times
+    finally:
+        _STAGES.remove(times)
+
+
+def _lap(name: str, since: float) -> float:
+    """Inside stage_seconds(): synchronise, add the seconds since `since` to step `name`; the time now."""
+    if not _STAGES:
+        return since
+    cuda.synchronize()
+    now = time.perf_counter()
+    _STAGES[-1][name] = _STAGES[-1].get(name, 0.0) + now - since
+    return now
 
 
 def is_device_array(x) -> bool:
@@ -333,6 +382,39 @@ def _device_f32(x, shape):
     return cuda.to_device(np.ascontiguousarray(np.asarray(x, dtype=np.float32).reshape(shape)))
 
 
+def device_empty(shape, dtype):
+    """An uninitialised device array (numba's type). With CuPy in use it comes from CuPy's memory pool
+    (numba's own allocations call cudaMalloc and cudaFree, tens of microseconds each, and the frees
+    synchronise the device); it is ordered with CuPy's work as both use the default stream."""
+    cupy = _cupy()
+    if cupy is None:
+        return cuda.device_array(shape, dtype)
+    return _numba_view(cupy.empty(shape, dtype))
+
+
+def _numba_view(cupy_array):
+    """A numba view of a CuPy array, which it keeps alive; without the synchronisation that numba does
+    by default on arrays from other libraries (both libraries here use the default stream)."""
+    return cuda.as_cuda_array(cupy_array, sync=False)
+
+
+_CAMERAS: dict = {}
+
+
+def camera_arrays(camera: Camera):
+    """The camera's R (3, 3), t (3,) and centre (3,) as float64 device arrays, uploaded once per pose
+    (the last 64 poses are kept)."""
+    key = (camera.R.tobytes(), camera.t.tobytes())
+    arrays = _CAMERAS.get(key)
+    if arrays is None:
+        if len(_CAMERAS) >= 64:
+            _CAMERAS.clear()
+        arrays = _CAMERAS[key] = tuple(cuda.to_device(np.ascontiguousarray(a, np.float64).reshape(shape))
+                                       for a, shape in ((camera.R, (3, 3)), (camera.t, (3,)),
+                                                        (camera.center, (3,))))
+    return arrays
+
+
 def _blocks(n, threads=256):
     """(blocks, threads per block) for n threads: blocks of `threads`, fewer for small n."""
     threads = min(threads, max(32, -(-n // 32) * 32))
@@ -340,16 +422,10 @@ def _blocks(n, threads=256):
 
 
 @cuda.jit
-def _depth_keys(depth_bits, counts, keys, ids):
-    """Radix sort input: the depth's float64 bits for kept Gaussians (depth > NEAR > 0, so the bits
-    order as the depths), those of +inf for culled ones; ids = 0 .. M - 1."""
+def _iota(ids):
     i = cuda.grid(1)
-    if i < keys.shape[0]:
-        keys[i] = depth_bits[i] if counts[i] > 0 else _INF_BITS
+    if i < ids.shape[0]:
         ids[i] = i
-
-
-_INF_BITS = np.int64(0x7FF0000000000000)
 
 
 @cuda.jit
@@ -376,22 +452,20 @@ def _sorter(sort: str):
 
 
 def _depth_order(depth_d, counts_d, cupy):
-    """Gaussian ids in (depth, index) order, the kept ones (count > 0) first, int32, the exclusive
-    prefix sums of their tile counts in that order, int64 (device arrays), and the total count."""
+    """Gaussian ids in (depth, index) order (culled ones, at depth +inf, last), the exclusive prefix
+    sums of their tile counts in that order, int64 (device arrays), and the total count."""
     m = counts_d.shape[0]
     if cupy is not None:
-        depth = cupy.asarray(depth_d)
-        counts = cupy.asarray(counts_d)
-        order = cupy.argsort(cupy.where(counts > 0, depth, cupy.inf))  # stable: ties by index
-        ordered = counts[order].astype(cupy.int64)
+        order = cupy.argsort(cupy.asarray(depth_d))  # stable: ties by index
+        ordered = cupy.asarray(counts_d)[order].astype(cupy.int64)
         sums = cupy.cumsum(ordered)
         total = int(sums[-1]) if m else 0
-        return cuda.as_cuda_array(order.astype(cupy.int32)), cuda.as_cuda_array(sums - ordered), total
-    keys = cuda.device_array(m, np.int64)
+        return _numba_view(order), _numba_view(sums - ordered), total
+    # Positive float64 depths (and +inf) order as their bit patterns.
     ids = cuda.device_array(m, np.int32)
     if m:
-        _depth_keys[_blocks(m)](depth_d.view(np.int64), counts_d, keys, ids)
-    _, order = sort_cuda.radix_sort(keys, ids, key_bits=63, **_SORT_SHAPE)
+        _iota[_blocks(m)](ids)
+    _, order = sort_cuda.radix_sort(depth_d.view(np.int64), ids, key_bits=63, **_SORT_SHAPE)
     ordered = cuda.device_array(m, np.int32)
     if m:
         _gather_counts[_blocks(m)](order, counts_d, ordered)
@@ -400,9 +474,11 @@ def _depth_order(depth_d, counts_d, cupy):
 
 
 def _sort_keys(keys_d, largest: int, cupy):
-    """The unique int64 keys, all <= largest, sorted (a new or the same device array)."""
+    """The unique int64 keys, all <= largest, sorted: in place with CuPy, else into a new device array."""
     if cupy is not None:
-        return cuda.as_cuda_array(cupy.sort(cupy.asarray(keys_d)))
+        keys = cupy.asarray(keys_d)
+        keys.sort()
+        return keys_d
     return sort_cuda.radix_sort(keys_d, key_bits=int(largest).bit_length(), **_SORT_SHAPE)[0]
 
 
@@ -423,6 +499,9 @@ def rasterize(means, quats, scales, opacities, features, camera: Camera, *, tile
     tile_size = int(tile_size)
     if not 1 <= tile_size <= MAX_TILE:
         raise ValueError(f"tile_size must be in 1..{MAX_TILE}, got {tile_size}")
+    if _STAGES:
+        cuda.synchronize()  # the caller's work is not this call's
+    lap = time.perf_counter()
     means_d = _device_f32(means, (-1, 3))
     m = means_d.shape[0]
     quats_d = _device_f32(quats, (m, 4))
@@ -436,30 +515,38 @@ def rasterize(means, quats, scales, opacities, features, camera: Camera, *, tile
         raise ValueError("features need at least one channel")
     feat_d = _device_f32(features, (m, C))
     W, H = camera.width, camera.height
-    packed = cuda.device_array((max(m, 1), 7), np.float32)
-    rect = cuda.device_array((max(m, 1), 4), np.int32)
-    depth = cuda.device_array(max(m, 1), np.float64)
-    counts = cuda.device_array(m, np.int32)
-    if m:
-        _project[_blocks(m)](means_d, quats_d, scales_d, opac_d, cuda.to_device(np.ascontiguousarray(camera.R)),
-                             cuda.to_device(np.ascontiguousarray(camera.t)), float(camera.fx), float(camera.fy),
-                             float(camera.cx), float(camera.cy), W, H, tile_size, packed, rect, depth, counts)
     tiles_x = -(-W // tile_size)
     tiles_y = -(-H // tile_size)
-    tile_range = cuda.to_device(np.zeros((tiles_x * tiles_y, 2), np.int64))
-    order, offsets, total = _depth_order(depth[:m], counts, cupy)
-    ids = cuda.device_array(max(total, 1), np.int32)
+    n_tiles = tiles_x * tiles_y
+    packed = device_empty((max(m, 1), 7), np.float32)
+    rect = device_empty((max(m, 1), 4), np.int32)
+    depth = device_empty(m, np.float64)
+    counts = device_empty(m, np.int32)
+    tile_range = device_empty((n_tiles, 2), np.int64)
+    R_d, t_d, _ = camera_arrays(camera)
+    lap = _lap("inputs", lap)
+    _project[_blocks(max(m, n_tiles))](means_d, quats_d, scales_d, opac_d, R_d, t_d, float(camera.fx),
+                                       float(camera.fy), float(camera.cx), float(camera.cy), W, H, tile_size,
+                                       packed, rect, depth, counts, tile_range)
+    lap = _lap("project", lap)
+    order, offsets, total = _depth_order(depth, counts, cupy)
+    lap = _lap("depth order", lap)
+    ids = device_empty(max(total, 1), np.int32)
     if total:
-        keys = cuda.device_array(total, np.int64)
+        keys = device_empty(total, np.int64)
         _duplicate[_blocks(order.shape[0])](order, offsets, counts, rect, tile_size, tiles_x, keys)
-        keys = _sort_keys(keys, tiles_x * tiles_y * m - 1, cupy)
+        lap = _lap("tile keys", lap)
+        keys = _sort_keys(keys, n_tiles * m - 1, cupy)
+        lap = _lap("tile sort", lap)
         _ranges[_blocks(total)](keys, order, tile_range, ids)
-    out_f = cuda.device_array((H, W, C), np.float32)
-    out_a = cuda.device_array((H, W), np.float32)
-    out_d = cuda.device_array((H, W), np.float32)
+        lap = _lap("ranges", lap)
+    out_f = device_empty((H, W, C), np.float32)
+    out_a = device_empty((H, W), np.float32)
+    out_d = device_empty((H, W), np.float32)
     for ch0 in range(0, C, CHANNELS_PER_PASS):
-        _composite[tiles_x * tiles_y, (tile_size, tile_size)](packed, rect, feat_d, tile_range, ids, ch0, tiles_x,
-                                                             W, H, out_f, out_a, out_d)
+        _compositor(min(CHANNELS_PER_PASS, C - ch0))[n_tiles, (tile_size, tile_size)](
+            packed, rect, feat_d, tile_range, ids, ch0, tiles_x, W, H, out_f, out_a, out_d)
+    _lap("composite", lap)
     if out == "device":
         return out_f, out_a, out_d
     return out_f.copy_to_host(), out_a.copy_to_host(), out_d.copy_to_host()

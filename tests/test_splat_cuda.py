@@ -115,6 +115,23 @@ def test_device_sorts_agree():
 
 
 @needs_kernels
+def test_stage_seconds_times_each_step_without_changing_the_image():
+    arrays, camera, ref = _scene(6, M, 3)
+    plain = splat_cuda.rasterize(*arrays, camera)
+    with splat_cuda.stage_seconds() as seconds:
+        timed = splat_cuda.rasterize(*arrays, camera)
+        splat_cuda.rasterize(*arrays, camera)
+    assert list(seconds) == ["inputs", "project", "depth order", "tile keys", "tile sort", "ranges", "composite"]
+    assert all(s > 0 for s in seconds.values())
+    before = dict(seconds)
+    splat_cuda.rasterize(*arrays, camera)  # outside the block: nothing added
+    assert seconds == before
+    for a, b in zip(plain, timed):
+        np.testing.assert_array_equal(a, b)
+    _assert_matches(timed, ref)
+
+
+@needs_kernels
 def test_empty_and_culled_scenes_render_transparent():
     arrays, camera, _ = _scene(5, M, 3)
     means, quats, scales, opacities, features = arrays
@@ -278,4 +295,4 @@ def test_cuda_without_gpu_is_refused_clearly():
 def test_kernels_under_simulator(run_under_simulator):
     if RUN:
         pytest.skip("the kernels run directly in this process")
-    run_under_simulator(__file__, passed=19)
+    run_under_simulator(__file__, passed=20)

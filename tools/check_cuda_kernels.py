@@ -28,11 +28,13 @@ F, I, B = T.float64, T.int64, T.boolean  # Python floats, ints and bools as laun
 #: Per module, per kernel: its argument types, or a list of them.
 SIGNATURES = {
     "splat_cuda": {
-        "_project": (f32_2, f32_2, f32_2, f32_1, f64_2, f64_1, F, F, F, F, I, I, I, f32_2, i32_2, f64_1, i32_1),
-        "_duplicate": (i32_1, i64_1, i32_1, i32_2, I, I, i64_1),
-        "_ranges": (i64_1, i32_1, i64_2, i32_1),
+        "_project": (f32_2, f32_2, f32_2, f32_1, f64_2, f64_1, F, F, F, F, I, I, I, f32_2, i32_2, f64_1, i32_1,
+                     i64_2),
+        # order: int32 from sort_cuda, int64 from CuPy's argsort
+        "_duplicate": [(i32_1, i64_1, i32_1, i32_2, I, I, i64_1), (i64_1, i64_1, i32_1, i32_2, I, I, i64_1)],
+        "_ranges": [(i64_1, i32_1, i64_2, i32_1), (i64_1, i64_1, i64_2, i32_1)],
         "_composite": (f32_2, i32_2, f32_2, i64_2, i32_1, I, I, I, I, f32_3, f32_2, f32_2),
-        "_depth_keys": (i64_1, i32_1, i64_1, i32_1),
+        "_iota": (i32_1,),
         "_gather_counts": (i32_1, i32_1, i32_1),
     },
     "timeeval_cuda": {
