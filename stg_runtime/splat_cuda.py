@@ -403,7 +403,7 @@ _CAMERAS: dict = {}
 
 def camera_arrays(camera: Camera):
     """The camera's R (3, 3), t (3,) and centre (3,) as float64 device arrays, uploaded once per pose
-    (the last 64 poses are kept)."""
+    (up to 64 poses are kept; then the cache starts again)."""
     key = (camera.R.tobytes(), camera.t.tobytes())
     arrays = _CAMERAS.get(key)
     if arrays is None:
