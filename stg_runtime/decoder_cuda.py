@@ -27,7 +27,7 @@ from .camera import Camera
 from .cuda_math import dmax, dmin
 from .decoder import Decoder
 from .sh import C0 as SH_C0, C1 as SH_C1, C2 as SH_C2, C3 as SH_C3, degree_of
-from .splat_cuda import camera_arrays, device_empty, simulated
+from .splat_cuda import camera_arrays, device_empty, is_device_array, simulated
 
 CUDA_PROVIDER = "CUDAExecutionProvider"
 
@@ -148,12 +148,14 @@ def _sh(coeffs, means, center, out):
 
 def sh_colours(coeffs_d, means_d, center):
     """Device (M, 3 K) SH coefficients (K = 1, 4, 9 or 16; layout of stg_runtime.sh) and (M, 3) means,
-    camera centre (3,) -> device (M, 3) float32 colours, as stg_runtime.sh.sh_colours."""
+    camera centre (3,) (host, or a float64 device array as from splat_cuda.camera_arrays) -> device
+    (M, 3) float32 colours, as stg_runtime.sh.sh_colours."""
     degree_of(coeffs_d.shape[1])
     m = coeffs_d.shape[0]
     out = device_empty((m, 3), np.float32)
     if m:
-        _sh[-(-m // 256), 256](coeffs_d, means_d, cuda.to_device(np.asarray(center, np.float64).reshape(3)), out)
+        center_d = center if is_device_array(center) else cuda.to_device(np.asarray(center, np.float64).reshape(3))
+        _sh[-(-m // 256), 256](coeffs_d, means_d, center_d, out)
     return out
 
 

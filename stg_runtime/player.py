@@ -138,7 +138,7 @@ class Player:
         gaussians = self._device_segments[key].evaluate(tau)
         if self.model.kind == "sh":
             means, coeffs = gaussians[0], gaussians[4]
-            gaussians = (*gaussians[:4], decoder_cuda.sh_colours(coeffs, means, camera.center))
+            gaussians = (*gaussians[:4], decoder_cuda.sh_colours(coeffs, means, splat_cuda.camera_arrays(camera)[2]))
         features, alpha, depth = splat_cuda.rasterize(*gaussians, camera, out="device")
         if self.model.kind in ("lite", "sh"):
             rgb = decoder_cuda.lite_colour(features)
