@@ -1,7 +1,7 @@
 """Colour on the GPU (numba.cuda): the decoder of formats/stg-v1.md, section 2, applied to a splatted
 feature image that stays on the device.
 
-    sh_colours(coeffs_d, means_d, center) -> rgb_d   "sh" models, per Gaussian before splatting:
+    sh_colours(coeffs_d, means_d, camera) -> rgb_d   "sh" models, per Gaussian before splatting:
                                                       (M, 3 K) SH coefficients -> (M, 3) colours
     lite_colour(features_d) -> rgb_d                  lite and "sh" models: clamp(F[..., :3], 0, 1)
     FusedDecoder.from_onnx(onnx, activation)          the 12 -> 6 -> 3 MatMul/Relu graph, one thread
@@ -9,7 +9,8 @@ feature image that stays on the device.
     OnnxDeviceDecoder(onnx, activation)               any decoder graph the format allows, run by
         (features_d, camera) -> rgb_d                 onnxruntime: its CUDA provider where installed
 
-features_d: (H, W, C) float32 device array; rgb_d: (H, W, 3) float32 device array in [0, 1]. The
+features_d: (H, W, C) float32 device array; rgb_d: (H, W, 3) float32 device array in [0, 1]; each also
+takes out=, a device array to write the result into (Player passes its workspace's). The
 fused decoder is the fast path; OnnxDeviceDecoder is its reference and runs the graphs it cannot fuse.
 OnnxDeviceDecoder builds the decoder's input rows [F[3:], camera centre, ray] on the device; with
 onnxruntime's CUDAExecutionProvider (the onnxruntime-gpu package) and a real GPU it binds those device
@@ -27,7 +28,8 @@ from .camera import Camera
 from .cuda_math import dmax, dmin
 from .decoder import Decoder
 from .sh import C0 as SH_C0, C1 as SH_C1, C2 as SH_C2, C3 as SH_C3, degree_of
-from .splat_cuda import camera_arrays, device_empty, is_device_array, simulated
+from .cuda_launch import launch
+from .splat_cuda import camera_params, device_empty, simulated
 
 CUDA_PROVIDER = "CUDAExecutionProvider"
 
@@ -37,15 +39,18 @@ def _grid2d(W, H, block=16):
 
 
 @cuda.jit(device=True)
-def _ray(R, fx, fy, cx, cy, ix, iy, k):
-    """Component k of the unit world-space ray through pixel centre (ix, iy): R^T d (float64)."""
-    du = (ix + 0.5 - cx) / fx
-    dv = (iy + 0.5 - cy) / fy
-    return (R[0, k] * du + R[1, k] * dv + R[2, k]) / math.sqrt(du * du + dv * dv + 1.0)
+def _ray(cam, ix, iy):
+    """The unit world-space ray through pixel centre (ix, iy), R^T d (3 float64; cam as
+    splat_cuda.camera_params)."""
+    du = (ix + 0.5 - cam[14]) / cam[12]
+    dv = (iy + 0.5 - cam[15]) / cam[13]
+    n = math.sqrt(du * du + dv * dv + 1.0)
+    return ((cam[0] * du + cam[3] * dv + cam[6]) / n, (cam[1] * du + cam[4] * dv + cam[7]) / n,
+            (cam[2] * du + cam[5] * dv + cam[8]) / n)
 
 
 @cuda.jit
-def _decode(features, w1, w2, center, R, fx, fy, cx, cy, sigmoid, rgb):
+def _decode(features, w1, w2, cam, sigmoid, rgb):
     """One thread per pixel: rgb = act(F[:3] + W2 relu(W1 [F[3:], centre, ray])), clamped to [0, 1]."""
     ix, iy = cuda.grid(2)
     if iy >= rgb.shape[0] or ix >= rgb.shape[1]:
@@ -53,9 +58,8 @@ def _decode(features, w1, w2, center, R, fx, fy, cx, cy, sigmoid, rgb):
     x = cuda.local.array(12, np.float32)
     for c in range(6):
         x[c] = features[iy, ix, 3 + c]
-    for k in range(3):
-        x[6 + k] = center[k]
-        x[9 + k] = _ray(R, fx, fy, cx, cy, ix, iy, k)
+    x[6], x[7], x[8] = cam[16], cam[17], cam[18]
+    x[9], x[10], x[11] = _ray(cam, ix, iy)
     h = cuda.local.array(6, np.float32)
     for j in range(6):
         s = np.float32(0.0)
@@ -73,7 +77,7 @@ def _decode(features, w1, w2, center, R, fx, fy, cx, cy, sigmoid, rgb):
 
 
 @cuda.jit
-def _decoder_rows(features, center, R, fx, fy, cx, cy, rows):
+def _decoder_rows(features, cam, rows):
     """rows[p] = [F[p, 3:], centre, ray] (p = iy * W + ix), the ONNX decoder's input, float32."""
     ix, iy = cuda.grid(2)
     H, W, C = features.shape
@@ -82,9 +86,8 @@ def _decoder_rows(features, center, R, fx, fy, cx, cy, rows):
     p = iy * W + ix
     for c in range(3, C):
         rows[p, c - 3] = features[iy, ix, c]
-    for k in range(3):
-        rows[p, C - 3 + k] = center[k]
-        rows[p, C + k] = _ray(R, fx, fy, cx, cy, ix, iy, k)
+    rows[p, C - 3], rows[p, C - 2], rows[p, C - 1] = cam[16], cam[17], cam[18]
+    rows[p, C], rows[p, C + 1], rows[p, C + 2] = _ray(cam, ix, iy)
 
 
 @cuda.jit
@@ -109,23 +112,32 @@ def _lite(features, rgb):
             rgb[iy, ix, j] = dmin(dmax(features[iy, ix, j], np.float32(0.0)), np.float32(1.0))
 
 
-def lite_colour(features_d):
+def _out(out, shape):
+    """`out` if given (checked), else a new float32 device array of `shape`."""
+    if out is None:
+        return device_empty(shape, np.float32)
+    if tuple(out.shape) != shape or out.dtype != np.float32:
+        raise ValueError(f"out must be a float32 device array of shape {shape}, got {out.dtype} {tuple(out.shape)}")
+    return out
+
+
+def lite_colour(features_d, out=None):
     """Device (H, W, C) features -> device (H, W, 3) rgb = clamp(F[..., :3], 0, 1)."""
     H, W = features_d.shape[:2]
-    rgb = device_empty((H, W, 3), np.float32)
-    _lite[_grid2d(W, H)](features_d, rgb)
+    rgb = _out(out, (H, W, 3))
+    launch(_lite, *_grid2d(W, H), features_d, rgb)
     return rgb
 
 
 @cuda.jit
-def _sh(coeffs, means, center, out):
+def _sh(coeffs, means, cam, out):
     """One thread per Gaussian: stg_runtime.sh's colour, max(sum_k Y_k(dir) c_k + 0.5, 0), in float64."""
     i = cuda.grid(1)
     if i >= coeffs.shape[0]:
         return
-    dx = np.float64(means[i, 0]) - center[0]
-    dy = np.float64(means[i, 1]) - center[1]
-    dz = np.float64(means[i, 2]) - center[2]
+    dx = np.float64(means[i, 0]) - cam[16]
+    dy = np.float64(means[i, 1]) - cam[17]
+    dz = np.float64(means[i, 2]) - cam[18]
     norm = math.sqrt(dx * dx + dy * dy + dz * dz)
     if norm > 0.0:
         dx, dy, dz = dx / norm, dy / norm, dz / norm
@@ -146,22 +158,15 @@ def _sh(coeffs, means, center, out):
         out[i, c] = dmax(s + 0.5, 0.0)
 
 
-def sh_colours(coeffs_d, means_d, center):
+def sh_colours(coeffs_d, means_d, camera: Camera, out=None):
     """Device (M, 3 K) SH coefficients (K = 1, 4, 9 or 16; layout of stg_runtime.sh) and (M, 3) means,
-    camera centre (3,) (host, or a float64 device array as from splat_cuda.camera_arrays) -> device
-    (M, 3) float32 colours, as stg_runtime.sh.sh_colours."""
+    seen from `camera` -> device (M, 3) float32 colours, as stg_runtime.sh.sh_colours."""
     degree_of(coeffs_d.shape[1])
     m = coeffs_d.shape[0]
-    out = device_empty((m, 3), np.float32)
+    out = _out(out, (m, 3))
     if m:
-        center_d = center if is_device_array(center) else cuda.to_device(np.asarray(center, np.float64).reshape(3))
-        _sh[-(-m // 256), 256](coeffs_d, means_d, center_d, out)
+        launch(_sh, -(-m // 256), 256, coeffs_d, means_d, camera_params(camera), out)
     return out
-
-
-def _camera_args(camera: Camera):
-    R_d, _, center_d = camera_arrays(camera)
-    return center_d, R_d, float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy)
 
 
 class FusedDecoder:
@@ -186,13 +191,13 @@ class FusedDecoder:
             return None
         return cls(weights, activation)
 
-    def __call__(self, features_d, camera: Camera):
+    def __call__(self, features_d, camera: Camera, out=None):
         """Device (H, W, 9) features -> device (H, W, 3) rgb in [0, 1]."""
         H, W, C = features_d.shape
         if C != 9:
             raise ValueError(f"the fused decoder expects 9 feature channels, got {C}")
-        rgb = device_empty((H, W, 3), np.float32)
-        _decode[_grid2d(W, H)](features_d, self.w1, self.w2, *_camera_args(camera), self.sigmoid, rgb)
+        rgb = _out(out, (H, W, 3))
+        launch(_decode, *_grid2d(W, H), features_d, self.w1, self.w2, camera_params(camera), self.sigmoid, rgb)
         return rgb
 
 
@@ -227,14 +232,14 @@ class OnnxDeviceDecoder:
         self.on_device = CUDA_PROVIDER in self.decoder.session.get_providers()
         self.sigmoid = activation == "sigmoid"
 
-    def __call__(self, features_d, camera: Camera):
+    def __call__(self, features_d, camera: Camera, out=None):
         """Device (H, W, C) features -> device (H, W, 3) rgb in [0, 1]."""
         H, W, C = features_d.shape
         if C + 3 != self.decoder.input_channels:
             raise ValueError(f"decoder expects {self.decoder.input_channels - 3} feature channels, got {C}")
         grid = _grid2d(W, H)
         rows = device_empty((H * W, C + 3), np.float32)
-        _decoder_rows[grid](features_d, *_camera_args(camera), rows)
+        _decoder_rows[grid](features_d, camera_params(camera), rows)
         if self.on_device:
             y = device_empty((H * W, 3), np.float32)
             cuda.synchronize()  # onnxruntime runs on a stream of its own
@@ -243,6 +248,6 @@ class OnnxDeviceDecoder:
         else:
             (y,) = self.decoder.session.run(None, {self.decoder.input_name: rows.copy_to_host()})
             y = cuda.to_device(np.ascontiguousarray(y, np.float32))
-        rgb = device_empty((H, W, 3), np.float32)
+        rgb = _out(out, (H, W, 3))
         _add_base[grid](features_d, y, self.sigmoid, rgb)
         return rgb

@@ -59,6 +59,7 @@ class Player:
         self._decoders: dict[int, Decoder] = {}
         self._device_decoders: dict[int, object] = {}  # device "cuda": per segment, Fused/OnnxDeviceDecoder
         self._device_segments: dict[int, object] = {}  # device "cuda": per segment, its DeviceSegment
+        self._workspace = None  # device "cuda": splat_cuda.Workspace, the buffers kept between frames
 
     # -- what the model covers -----------------------------------------------------------------
     @property
@@ -95,7 +96,8 @@ class Player:
     # -- rendering -------------------------------------------------------------------------------
     def render(self, camera: Camera, t: float, out: str = "host") -> np.ndarray:
         """(H, W, 3) float32 rgb in [0, 1] seen by `camera` at time `t` seconds. out="device" (device
-        "cuda" only) returns it as a numba device array, left on the GPU."""
+        "cuda" only) returns it as a numba device array, left on the GPU: one of the player's own
+        buffers, which its next render overwrites (copy it to keep it)."""
         return self.render_all(camera, t, out=out).rgb
 
     def render_frame(self, camera: Camera, frame: int) -> np.ndarray:
@@ -103,7 +105,8 @@ class Player:
         return self.render(camera, frame / self.fps)
 
     def render_all(self, camera: Camera, t: float, out: str = "host") -> Rendered:
-        """rgb plus the splatted features, alpha and depth (numba device arrays with out="device")."""
+        """rgb plus the splatted features, alpha and depth (with out="device": numba device arrays, the
+        player's buffers, overwritten by its next render)."""
         if out not in ("host", "device"):
             raise ValueError(f"out must be 'host' or 'device', got {out!r}")
         if out == "device" and self.device != "cuda":
@@ -135,19 +138,23 @@ class Player:
         key = id(segment)
         if key not in self._device_segments:
             self._device_segments[key] = DeviceSegment(segment)
+        if self._workspace is None:
+            self._workspace = splat_cuda.Workspace()
+        ws = self._workspace
         gaussians = self._device_segments[key].evaluate(tau)
         if self.model.kind == "sh":
             means, coeffs = gaussians[0], gaussians[4]
-            gaussians = (*gaussians[:4], decoder_cuda.sh_colours(coeffs, means, splat_cuda.camera_arrays(camera)[2]))
-        features, alpha, depth = splat_cuda.rasterize(*gaussians, camera, out="device")
+            colours = ws.buffer("sh colours", (means.shape[0], 3), np.float32).device
+            gaussians = (*gaussians[:4], decoder_cuda.sh_colours(coeffs, means, camera, out=colours))
+        features, alpha, depth = splat_cuda.rasterize(*gaussians, camera, out="device", workspace=ws)
+        rgb_out = ws.buffer("rgb", (camera.height, camera.width, 3), np.float32).device
         if self.model.kind in ("lite", "sh"):
-            rgb = decoder_cuda.lite_colour(features)
+            rgb = decoder_cuda.lite_colour(features, out=rgb_out)
         else:
-            key = id(segment)
             if key not in self._device_decoders:
                 self._device_decoders[key] = (decoder_cuda.FusedDecoder.from_onnx(segment.decoder, segment.activation)
                                               or decoder_cuda.OnnxDeviceDecoder(segment.decoder, segment.activation))
-            rgb = self._device_decoders[key](features, camera)
+            rgb = self._device_decoders[key](features, camera, out=rgb_out)
         if out == "device":
             return Rendered(rgb, features, alpha, depth)
         host = lambda a: a if isinstance(a, np.ndarray) else a.copy_to_host()  # noqa: E731

@@ -1,26 +1,25 @@
 """GPU splatter (numba.cuda): the rules of formats/stg-v1.md, section 3, with splat_cpu's contract.
 
-    rasterize(means, quats, scales, opacities, features, camera, *, tile_size=16, out="host", sort="auto")
-        -> features (H, W, C), alpha (H, W), depth (H, W), all float32
+    rasterize(means, quats, scales, opacities, features, camera, *, tile_size=16, out="host",
+              sort="auto", workspace=None) -> features (H, W, C), alpha (H, W), depth (H, W), float32
 
 Inputs may be host (numpy) or device arrays; with out="device" the results stay on the device. The
-pipeline (everything stays on the device between kernels, except where said):
+pipeline (everything stays on the device, except where said):
 
 1. _project (one thread per Gaussian): as splat_cpu._project, in float64: camera-space depth, the EWA
    2D covariance and conic, the 3-sigma radius, and the rectangle of pixel centres within the radius
    that can reach alpha >= 1/255, clipped to the image; a record of 7 float32 (mean u, v, conic A/2,
-   B, C/2, opacity, z), the rectangle (4 int32), the number of tiles it meets (0: culled) and its
-   sort depth (z, +inf when culled). The same launch clears the tile ranges.
-2. Depth order: the Gaussians sorted by (depth, index), culled ones last, and the exclusive prefix
-   sum of their tile counts in that order. With CuPy installed (and a real GPU): cupy.argsort
-   (stable) and cupy.cumsum. Without CuPy (or with sort="numba"): stg_runtime.sort_cuda's stable radix
-   sort of the depths' float64 bit patterns (positive floats and +inf order as their bits; stability
-   orders ties by index) and its scan.
-3. _duplicate (one thread per rank): one 64-bit key per (tile, Gaussian) pair, tile * K + rank
-   (K the number of Gaussians, rank the Gaussian's place in the order); the keys are unique, and
-   sorting them (CuPy's in place, or the radix sort over their bit length) gives every tile's list front
-   to back; _ranges finds each tile's [start, end) and the Gaussian ids. Only the total pair count is
-   copied to the host (to allocate the keys).
+   B, C/2, opacity, z), the rectangle (4 int32), the number of tiles it meets (0: culled) and a depth
+   key, (float32 z bits << 32) | index (z = +inf when culled). Each block adds its tile count and its
+   number of kept Gaussians K to two device counters, which are the only values copied to the host.
+   The same launch clears the tile ranges.
+2. Depth order: the depth keys sorted (CuPy's sort in place; without CuPy, or with sort="numba",
+   stg_runtime.sort_cuda's radix sort). Positive floats and +inf order as their bits, so this is the
+   order of increasing float32 z, ties (in float32) by index, culled Gaussians last.
+3. _duplicate (one thread per rank r < K): one key tile * K + r per tile the Gaussian meets; blocks
+   take their places in the key array from a third counter. The keys are unique, int32 when they
+   fit (else int64), and sorting them gives every tile's list front to back; _ranges finds each
+   tile's [start, end) and the Gaussian ids.
 4. _composite (one block per tile, one thread per pixel): Gaussians are loaded in batches of one per
    thread into shared memory and composited front to back with the spec's skip and stop rules in
    float32 (as splat_cpu: the pixel rectangle is the footprint test). Features are accumulated in
@@ -28,8 +27,11 @@ pipeline (everything stays on the device between kernels, except where said):
    lists; one kernel is compiled per channel count, so its loops unroll). A block ends once all its
    pixels have stopped (syncthreads_count).
 
-With CuPy, every buffer comes from CuPy's memory pool (device_empty): numba's own allocations cost
-more than a frame's kernels. stage_seconds() times the steps (bench/render.py prints them).
+What a frame costs on the host matters as much as the kernels (at 200k Gaussians the kernels take
+about 0.5 ms on an H200): buffers are kept in a Workspace between frames (with CuPy, from CuPy's memory
+pool), launches repeat with the same arrays and go through stg_runtime.cuda_launch, the camera is
+passed by value (camera_params), and the host waits for the device once, for the two counters.
+stage_seconds() times the steps (bench/render.py prints them).
 
 Colour on the device: stg_runtime.decoder_cuda; time evaluation: stg_runtime.timeeval_cuda.
 
@@ -48,6 +50,7 @@ from numba import config as _numba_config
 from numba import cuda
 
 from . import sort_cuda
+from .cuda_launch import launch
 from .camera import Camera
 from .cuda_math import dmax, dmin
 from .splat_reference import BLUR, MAX_ALPHA, MIN_ALPHA, NEAR, T_STOP
@@ -121,30 +124,34 @@ def require() -> None:
                            "starting Python to run the GPU kernels in numba's (slow) CPU simulator")
 
 
-@cuda.jit
-def _project(means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, width, height, tile_size,
-             packed, rect, depth, counts, tile_range):
-    """Thread i: Gaussian i's record, rectangle, tile count and depth (+inf when culled); and tile i's
-    range set to empty (the grid covers max(M, number of tiles))."""
-    i = cuda.grid(1)
-    if i < tile_range.shape[0]:
-        tile_range[i, 0] = 0
-        tile_range[i, 1] = 0
-    if i >= means.shape[0]:
-        return
-    counts[i] = 0
-    depth[i] = math.inf
+def camera_params(camera: Camera) -> tuple:
+    """The camera as the kernels take it, one tuple argument of CAMERA_PARAMS float64: R row-major
+    (0..8), t (9..11), fx, fy, cx, cy (12..15) and the camera centre (16..18)."""
+    w2c = camera.world_to_camera
+    return (*w2c[:3, :3].ravel().tolist(), *w2c[:3, 3].tolist(), camera.fx, camera.fy, camera.cx, camera.cy,
+            *camera.center.tolist())
+
+
+CAMERA_PARAMS = 19
+
+
+@cuda.jit(device=True)
+def _project_one(i, means, quats, scales, opacities, cam, width, height, tile_size, packed, rect, depth_bits):
+    """Gaussian i's record, rectangle and depth (float32 z, +inf when culled) in depth_bits[i, 1]; returns
+    the number of tiles it meets (0: culled)."""
+    depth_bits[i, 1] = math.inf
+    fx, fy, cx, cy = cam[12], cam[13], cam[14], cam[15]
     tan_x = 0.3 * width / (2.0 * fx)
     tan_y = 0.3 * height / (2.0 * fy)
     wx = np.float64(means[i, 0])
     wy = np.float64(means[i, 1])
     wz = np.float64(means[i, 2])
-    x = Rc[0, 0] * wx + Rc[0, 1] * wy + Rc[0, 2] * wz + tc[0]
-    y = Rc[1, 0] * wx + Rc[1, 1] * wy + Rc[1, 2] * wz + tc[1]
-    z = Rc[2, 0] * wx + Rc[2, 1] * wy + Rc[2, 2] * wz + tc[2]
+    x = cam[0] * wx + cam[1] * wy + cam[2] * wz + cam[9]
+    y = cam[3] * wx + cam[4] * wy + cam[5] * wz + cam[10]
+    z = cam[6] * wx + cam[7] * wy + cam[8] * wz + cam[11]
     o = np.float64(opacities[i])
     if not (z > NEAR) or not (o >= MIN_ALPHA):
-        return
+        return 0
     qw = np.float64(quats[i, 0])
     qx = np.float64(quats[i, 1])
     qy = np.float64(quats[i, 2])
@@ -181,9 +188,9 @@ def _project(means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, width, hei
             g0, g1, g2, s = r01, r11, r21, np.float64(scales[i, 1])
         else:
             g0, g1, g2, s = r02, r12, r22, np.float64(scales[i, 2])
-        m0 = (Rc[0, 0] * g0 + Rc[0, 1] * g1 + Rc[0, 2] * g2) * s
-        m1 = (Rc[1, 0] * g0 + Rc[1, 1] * g1 + Rc[1, 2] * g2) * s
-        m2 = (Rc[2, 0] * g0 + Rc[2, 1] * g1 + Rc[2, 2] * g2) * s
+        m0 = (cam[0] * g0 + cam[1] * g1 + cam[2] * g2) * s
+        m1 = (cam[3] * g0 + cam[4] * g1 + cam[5] * g2) * s
+        m2 = (cam[6] * g0 + cam[7] * g1 + cam[8] * g2) * s
         t0 = j00 * m0 + j02 * m2
         t1 = j11 * m1 + j12 * m2
         a += t0 * t0
@@ -193,7 +200,7 @@ def _project(means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, width, hei
     c += BLUR
     det = a * c - b * b
     if not (det > 0.0):
-        return
+        return 0
     mid = 0.5 * (a + c)
     # math.ceil/floor give integers: their arguments are clamped to where the result is exact and the
     # clipping below unchanged (float64 beyond int64 has no defined conversion on the device).
@@ -208,7 +215,7 @@ def _project(means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, width, hei
     fv0 = dmax(0.0, 1.0 * math.ceil(dmin(dmax(v - hy - 0.5, -2.0), height + 2.0)))
     fv1 = dmin(height - 1.0, 1.0 * math.floor(dmin(dmax(v + hy - 0.5, -2.0), height + 2.0)))
     if fu0 > fu1 or fv0 > fv1:
-        return
+        return 0
     u0 = np.int32(fu0)
     u1 = np.int32(fu1)
     v0 = np.int32(fv0)
@@ -217,8 +224,7 @@ def _project(means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, width, hei
     rect[i, 1] = u1
     rect[i, 2] = v0
     rect[i, 3] = v1
-    counts[i] = (u1 // tile_size - u0 // tile_size + 1) * (v1 // tile_size - v0 // tile_size + 1)
-    depth[i] = z
+    depth_bits[i, 1] = z
     idet = 1.0 / det
     packed[i, 0] = u
     packed[i, 1] = v
@@ -227,40 +233,90 @@ def _project(means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, width, hei
     packed[i, 4] = 0.5 * a * idet
     packed[i, 5] = o
     packed[i, 6] = z
+    return (u1 // tile_size - u0 // tile_size + 1) * (v1 // tile_size - v0 // tile_size + 1)
 
 
 @cuda.jit
-def _duplicate(order, offsets, counts, rect, tile_size, tiles_x, keys):
-    """keys[offsets[r] + ...] = tile * K + r for every tile met by the Gaussian of rank r (K: the
-    length of order, which may list culled Gaussians and padding after the kept ones)."""
+def _project(means, quats, scales, opacities, cam, width, height, tile_size, packed, rect, counts, depth_bits,
+             depth_ids, tile_range, counters):
+    """Thread i: Gaussian i's record, rectangle, tile count and depth key (depth_ids[i, 0] = i, and the
+    float32 view of the same memory depth_bits[i, 1] = z); tile i's range set to empty (the grid covers
+    max(M, number of tiles)). Per block: counters[0] += the tiles met, counters[1] += the Gaussians kept."""
+    i = cuda.grid(1)
+    if i < tile_range.shape[0]:
+        tile_range[i, 0] = 0
+        tile_range[i, 1] = 0
+    n = 0
+    if i < means.shape[0]:
+        depth_ids[i, 0] = i
+        n = _project_one(i, means, quats, scales, opacities, cam, width, height, tile_size, packed, rect,
+                         depth_bits)
+        counts[i] = n
+    block_tiles = cuda.shared.array(1, np.int64)
+    if cuda.threadIdx.x == 0:
+        block_tiles[0] = 0
+    cuda.syncthreads()
+    if n > 0:
+        cuda.atomic.add(block_tiles, 0, n)
+    kept = cuda.syncthreads_count(np.int32(1) if n > 0 else np.int32(0))  # (also the barrier for the sum)
+    if cuda.threadIdx.x == 0 and kept > 0:
+        cuda.atomic.add(counters, 0, block_tiles[0])
+        cuda.atomic.add(counters, 1, kept)
+
+
+@cuda.jit
+def _clear(counters):
+    i = cuda.grid(1)
+    if i < counters.shape[0]:
+        counters[i] = 0
+
+
+@cuda.jit
+def _duplicate(order, counts, rect, tile_size, tiles_x, counters, keys):
+    """Thread r < K (K = counters[1], the Gaussians kept; order[r, 0] the id of the r-th nearest): one key
+    tile * K + r per tile its rectangle meets, at places taken from counters[2] (per block; the keys
+    are sorted next, so where each lands does not matter)."""
     r = cuda.grid(1)
-    n = order.shape[0]
-    if r >= n:
+    kept = counters[1]
+    n = 0
+    g = 0
+    if r < kept:
+        g = order[r, 0]
+        n = counts[g]
+    block = cuda.shared.array(2, np.int64)  # the block's count so far, then its first place
+    if cuda.threadIdx.x == 0:
+        block[0] = 0
+    cuda.syncthreads()
+    mine = 0
+    if n > 0:
+        mine = cuda.atomic.add(block, 0, n)
+    cuda.syncthreads()
+    if cuda.threadIdx.x == 0 and block[0] > 0:
+        block[1] = cuda.atomic.add(counters, 2, block[0])
+    cuda.syncthreads()
+    if n == 0:
         return
-    g = order[r]
-    if g >= counts.shape[0] or counts[g] == 0:
-        return
-    k = offsets[r]
+    k = block[1] + mine
     for ty in range(rect[g, 2] // tile_size, rect[g, 3] // tile_size + 1):
         for tx in range(rect[g, 0] // tile_size, rect[g, 1] // tile_size + 1):
-            keys[k] = np.int64(ty * tiles_x + tx) * n + r
+            keys[k] = np.int64(ty * tiles_x + tx) * kept + r
             k += 1
 
 
 @cuda.jit
-def _ranges(keys, order, tile_range, ids):
-    """tile_range[t] = [start, end) of tile t's entries in the sorted keys; ids[e] its Gaussian id."""
-    e = cuda.grid(1)
-    m = keys.shape[0]
-    if e >= m:
-        return
-    n = order.shape[0]
-    tile = keys[e] // n
-    ids[e] = order[keys[e] - tile * n]
-    if e == 0 or keys[e - 1] // n != tile:
-        tile_range[tile, 0] = e
-    if e == m - 1 or keys[e + 1] // n != tile:
-        tile_range[tile, 1] = e + 1
+def _ranges(keys, order, counters, tile_range, ids):
+    """Over the first counters[0] sorted keys (grid-stride): tile_range[t] = [start, end) of tile t's
+    entries, ids[e] the Gaussian of entry e (order[r, 0] for key tile * K + r, K = counters[1])."""
+    total = counters[0]
+    kept = counters[1]
+    for e in range(cuda.grid(1), total, cuda.gridsize(1)):
+        key = np.int64(keys[e])
+        tile = key // kept
+        ids[e] = order[key - tile * kept, 0]
+        if e == 0 or np.int64(keys[e - 1]) // kept != tile:
+            tile_range[tile, 0] = e
+        if e == total - 1 or np.int64(keys[e + 1]) // kept != tile:
+            tile_range[tile, 1] = e + 1
 
 
 @functools.lru_cache(maxsize=None)
@@ -369,16 +425,23 @@ def _lap(name: str, since: float) -> float:
 
 def is_device_array(x) -> bool:
     """Whether x is a device array (numba's, CuPy's, any __cuda_array_interface__; the simulator's)."""
-    return hasattr(x, "__cuda_array_interface__") or (simulated() and hasattr(x, "copy_to_host"))
+    if isinstance(x, np.ndarray):
+        return False
+    return (getattr(type(x), "__cuda_array_interface__", None) is not None or hasattr(x, "__cuda_array_interface__")
+            or (simulated() and hasattr(x, "copy_to_host")))
 
 
 def _device_f32(x, shape):
-    """A contiguous float32 device array of `shape` (-1 allowed) from a host or device array."""
+    """A contiguous float32 device array of `shape` (-1 allowed) from a host or device array (device
+    arrays of that shape are returned as they are)."""
     if is_device_array(x):
         d = x if hasattr(x, "copy_to_host") else cuda.as_cuda_array(x)
         if d.dtype != np.float32:
             raise TypeError(f"device inputs must be float32, got {d.dtype}")
-        return d.reshape(shape) if d.shape != shape else d
+        if -1 in shape:
+            known = int(np.prod([v for v in shape if v != -1]))
+            shape = tuple(d.size // known if v == -1 else v for v in shape)
+        return d if d.shape == shape else d.reshape(shape)
     return cuda.to_device(np.ascontiguousarray(np.asarray(x, dtype=np.float32).reshape(shape)))
 
 
@@ -386,53 +449,68 @@ def device_empty(shape, dtype):
     """An uninitialised device array (numba's type). With CuPy in use it comes from CuPy's memory pool
     (numba's own allocations call cudaMalloc and cudaFree, tens of microseconds each, and the frees
     synchronise the device); it is ordered with CuPy's work as both use the default stream."""
+    return _allocate(shape, dtype)[0]
+
+
+def _allocate(shape, dtype):
+    """(numba device array, the CuPy array it views or None): uninitialised, from CuPy's pool when CuPy
+    is in use. The numba view is made without numba's synchronisation on foreign arrays (both
+    libraries use the default stream here)."""
     cupy = _cupy()
     if cupy is None:
-        return cuda.device_array(shape, dtype)
-    return _numba_view(cupy.empty(shape, dtype))
+        return cuda.device_array(shape, dtype), None
+    array = cupy.empty(shape, dtype)
+    return cuda.as_cuda_array(array, sync=False), array
 
 
-def _numba_view(cupy_array):
-    """A numba view of a CuPy array, which it keeps alive; without the synchronisation that numba does
-    by default on arrays from other libraries (both libraries here use the default stream)."""
-    return cuda.as_cuda_array(cupy_array, sync=False)
+class _Buffer:
+    """One workspace buffer: the numba array, the CuPy array it views (or None), views made once."""
+
+    __slots__ = ("device", "cupy", "shape", "dtype", "views")
+
+    def __init__(self, shape, dtype):
+        self.shape, self.dtype = shape, np.dtype(dtype)
+        self.device, self.cupy = _allocate(shape, dtype)
+        self.views: dict = {}
+
+    def view(self, dtype, shape):
+        """The buffer's memory as `dtype` in `shape` (a numba array, made once)."""
+        key = (np.dtype(dtype).char, shape)
+        if key not in self.views:
+            self.views[key] = self.device.view(dtype).reshape(shape)
+        return self.views[key]
 
 
-_CAMERAS: dict = {}
+class Workspace:
+    """Device buffers that rasterize keeps from one call to the next, so that a frame allocates nothing
+    and its kernel launches repeat with the same arrays (stg_runtime.cuda_launch replays them).
 
+    The results of rasterize(..., workspace=ws, out="device") are buffers of ws: the next call with ws
+    overwrites them (copy what must be kept). Player keeps one per player. buffer() gives callers
+    their own named buffers in the same way (Player's rgb image, say).
+    """
 
-def camera_arrays(camera: Camera):
-    """The camera's R (3, 3), t (3,) and centre (3,) as float64 device arrays, uploaded once per pose
-    (up to 64 poses are kept; then the cache starts again)."""
-    key = (camera.R.tobytes(), camera.t.tobytes())
-    arrays = _CAMERAS.get(key)
-    if arrays is None:
-        if len(_CAMERAS) >= 64:
-            _CAMERAS.clear()
-        arrays = _CAMERAS[key] = tuple(cuda.to_device(np.ascontiguousarray(a, np.float64).reshape(shape))
-                                       for a, shape in ((camera.R, (3, 3)), (camera.t, (3,)),
-                                                        (camera.center, (3,))))
-    return arrays
+    def __init__(self):
+        self._buffers: dict[str, _Buffer] = {}
+
+    def buffer(self, name: str, shape, dtype, *, at_least: bool = False) -> _Buffer:
+        """The buffer called `name`: kept while its shape and dtype stay, else a new uninitialised one.
+        at_least (1-D only): any length >= shape[0] will do; a new one gets half as much again."""
+        shape = tuple(int(v) for v in shape)
+        b = self._buffers.get(name)
+        if b is not None and b.dtype == dtype and (
+                b.shape == shape or (at_least and len(b.shape) == 1 and b.shape[0] >= shape[0])):
+            return b
+        if at_least:
+            shape = (max(shape[0], 1) * 3 // 2 + 256,)
+        b = self._buffers[name] = _Buffer(shape, dtype)
+        return b
 
 
 def _blocks(n, threads=256):
     """(blocks, threads per block) for n threads: blocks of `threads`, fewer for small n."""
     threads = min(threads, max(32, -(-n // 32) * 32))
     return max(1, -(-n // threads)), threads
-
-
-@cuda.jit
-def _iota(ids):
-    i = cuda.grid(1)
-    if i < ids.shape[0]:
-        ids[i] = i
-
-
-@cuda.jit
-def _gather_counts(order, counts, out):
-    r = cuda.grid(1)
-    if r < order.shape[0]:
-        out[r] = counts[order[r]]
 
 
 SORTS = ("auto", "cupy", "numba")
@@ -451,46 +529,23 @@ def _sorter(sort: str):
     return cupy
 
 
-def _depth_order(depth_d, counts_d, cupy):
-    """Gaussian ids in (depth, index) order (culled ones, at depth +inf, last), the exclusive prefix
-    sums of their tile counts in that order, int64 (device arrays), and the total count."""
-    m = counts_d.shape[0]
-    if cupy is not None:
-        order = cupy.argsort(cupy.asarray(depth_d))  # stable: ties by index
-        ordered = cupy.asarray(counts_d)[order].astype(cupy.int64)
-        sums = cupy.cumsum(ordered)
-        total = int(sums[-1]) if m else 0
-        return _numba_view(order), _numba_view(sums - ordered), total
-    # Positive float64 depths (and +inf) order as their bit patterns.
-    ids = cuda.device_array(m, np.int32)
-    if m:
-        _iota[_blocks(m)](ids)
-    _, order = sort_cuda.radix_sort(depth_d.view(np.int64), ids, key_bits=63, **_SORT_SHAPE)
-    ordered = cuda.device_array(m, np.int32)
-    if m:
-        _gather_counts[_blocks(m)](order, counts_d, ordered)
-    offsets, total = sort_cuda.exclusive_scan(ordered, **_SORT_SHAPE)
-    return order, offsets, total
-
-
-def _sort_keys(keys_d, largest: int, cupy):
-    """The unique int64 keys, all <= largest, sorted: in place with CuPy, else into a new device array."""
-    if cupy is not None:
-        keys = cupy.asarray(keys_d)
-        keys.sort()
-        return keys_d
-    return sort_cuda.radix_sort(keys_d, key_bits=int(largest).bit_length(), **_SORT_SHAPE)[0]
+def _host_counts(counters: _Buffer):
+    """counters[0] (tile entries) and counters[1] (Gaussians kept) on the host: waits for the device."""
+    host = counters.cupy.get() if counters.cupy is not None else counters.device.copy_to_host()
+    return int(host[0]), int(host[1])
 
 
 def rasterize(means, quats, scales, opacities, features, camera: Camera, *, tile_size: int = 16,
-              out: str = "host", sort: str = "auto"):
+              out: str = "host", sort: str = "auto", workspace: Workspace | None = None):
     """Render M Gaussians with the rules of formats/stg-v1.md, section 3, on the GPU.
 
     Same arguments and results as stg_runtime.splat_cpu.rasterize: means (M, 3), quats (M, 4) wxyz,
     scales (M, 3), opacities (M,), features (M, C): numpy or device arrays (converted to float32).
     tile_size in 1..MAX_TILE (16; pixels; speed only). Returns (features (H, W, C), alpha (H, W), depth (H, W))
-    float32: numpy arrays, or numba device arrays with out="device". sort: the device sort and scan,
-    "cupy", "numba" (stg_runtime.sort_cuda) or "auto" (CuPy where installed); speed only.
+    float32: numpy arrays, or numba device arrays with out="device". sort: the device sort, "cupy",
+    "numba" (stg_runtime.sort_cuda) or "auto" (CuPy where installed); speed only. workspace: buffers
+    kept between calls (see Workspace; with out="device" the results are its buffers); without one,
+    every buffer is new.
     """
     require()
     cupy = _sorter(sort)
@@ -502,6 +557,7 @@ def rasterize(means, quats, scales, opacities, features, camera: Camera, *, tile
     if _STAGES:
         cuda.synchronize()  # the caller's work is not this call's
     lap = time.perf_counter()
+    ws = workspace if workspace is not None else Workspace()
     means_d = _device_f32(means, (-1, 3))
     m = means_d.shape[0]
     quats_d = _device_f32(quats, (m, 4))
@@ -516,36 +572,56 @@ def rasterize(means, quats, scales, opacities, features, camera: Camera, *, tile
     feat_d = _device_f32(features, (m, C))
     W, H = camera.width, camera.height
     tiles_x = -(-W // tile_size)
-    tiles_y = -(-H // tile_size)
-    n_tiles = tiles_x * tiles_y
-    packed = device_empty((max(m, 1), 7), np.float32)
-    rect = device_empty((max(m, 1), 4), np.int32)
-    depth = device_empty(m, np.float64)
-    counts = device_empty(m, np.int32)
-    tile_range = device_empty((n_tiles, 2), np.int64)
-    R_d, t_d, _ = camera_arrays(camera)
+    n_tiles = tiles_x * -(-H // tile_size)
+    m1 = max(m, 1)
+    packed = ws.buffer("records", (m1, 7), np.float32).device
+    rect = ws.buffer("rectangles", (m1, 4), np.int32).device
+    counts = ws.buffer("tile counts", (m1,), np.int32).device
+    depth_keys = ws.buffer("depth keys", (m1,), np.int64)  # (z float32 bits << 32) | index
+    depth_bits = depth_keys.view(np.float32, (m1, 2))
+    depth_ids = depth_keys.view(np.int32, (m1, 2))
+    tile_range = ws.buffer("tile ranges", (n_tiles, 2), np.int64).device
+    counters = ws.buffer("counters", (3,), np.int64)
+    out_f = ws.buffer("features", (H, W, C), np.float32).device
+    out_a = ws.buffer("alpha", (H, W), np.float32).device
+    out_d = ws.buffer("depth", (H, W), np.float32).device
     lap = _lap("inputs", lap)
-    _project[_blocks(max(m, n_tiles))](means_d, quats_d, scales_d, opac_d, R_d, t_d, float(camera.fx),
-                                       float(camera.fy), float(camera.cx), float(camera.cy), W, H, tile_size,
-                                       packed, rect, depth, counts, tile_range)
+    launch(_clear, 1, 32, counters.device)
+    launch(_project, *_blocks(max(m, n_tiles)), means_d, quats_d, scales_d, opac_d, camera_params(camera), W, H,
+           tile_size, packed, rect, counts, depth_bits, depth_ids, tile_range, counters.device)
+    total, kept = _host_counts(counters)  # waits for the projection only
     lap = _lap("project", lap)
-    order, offsets, total = _depth_order(depth, counts, cupy)
-    lap = _lap("depth order", lap)
-    ids = device_empty(max(total, 1), np.int32)
     if total:
-        keys = device_empty(total, np.int64)
-        _duplicate[_blocks(order.shape[0])](order, offsets, counts, rect, tile_size, tiles_x, keys)
+        # Depth order: the keys (z bits, index) sorted; z >= 0 and +inf order as their bits, ties by index.
+        if cupy is not None:
+            depth_keys.cupy.sort()
+            order = depth_ids
+        else:
+            order = sort_cuda.radix_sort(depth_keys.device, key_bits=63, **_SORT_SHAPE)[0]
+            order = order.view(np.int32).reshape(m1, 2)
+        lap = _lap("depth order", lap)
+        # tile * kept + rank: for CuPy int32 keys (half its sort's work) when they fit (sort_cuda sorts
+        # int64, by the keys' bit length).
+        key_type = np.int32 if cupy is not None and n_tiles * kept <= 2**31 else np.int64
+        keys = ws.buffer(f"tile keys {np.dtype(key_type).char}", (total,), key_type, at_least=True)
+        ids = ws.buffer("ids", (total,), np.int32, at_least=True)
+        launch(_duplicate, *_blocks(m), order, counts, rect, tile_size, tiles_x, counters.device, keys.device)
         lap = _lap("tile keys", lap)
-        keys = _sort_keys(keys, n_tiles * m - 1, cupy)
+        if cupy is not None:
+            keys.cupy[:total].sort()
+            sorted_keys = keys.device
+        else:
+            sorted_keys = sort_cuda.radix_sort(keys.device[:total], key_bits=int(n_tiles * kept - 1).bit_length(),
+                                               **_SORT_SHAPE)[0]
         lap = _lap("tile sort", lap)
-        _ranges[_blocks(total)](keys, order, tile_range, ids)
+        launch(_ranges, min(-(-keys.shape[0] // 256), 4096), 256, sorted_keys, order, counters.device, tile_range,
+               ids.device)
         lap = _lap("ranges", lap)
-    out_f = device_empty((H, W, C), np.float32)
-    out_a = device_empty((H, W), np.float32)
-    out_d = device_empty((H, W), np.float32)
+    else:
+        ids = ws.buffer("ids", (1,), np.int32, at_least=True)
     for ch0 in range(0, C, CHANNELS_PER_PASS):
-        _compositor(min(CHANNELS_PER_PASS, C - ch0))[n_tiles, (tile_size, tile_size)](
-            packed, rect, feat_d, tile_range, ids, ch0, tiles_x, W, H, out_f, out_a, out_d)
+        launch(_compositor(min(CHANNELS_PER_PASS, C - ch0)), n_tiles, (tile_size, tile_size),
+               packed, rect, feat_d, tile_range, ids.device, ch0, tiles_x, W, H, out_f, out_a, out_d)
     _lap("composite", lap)
     if out == "device":
         return out_f, out_a, out_d

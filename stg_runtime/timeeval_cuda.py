@@ -12,6 +12,7 @@ import math
 import numpy as np
 from numba import cuda
 
+from .cuda_launch import launch
 from .model import Segment
 from .timeeval import time_channels
 
@@ -75,8 +76,8 @@ class DeviceSegment:
         scales (N, 3), opacities (N,), features (N, C)), float32. They are overwritten by the next call."""
         n = self.opacity.shape[0]
         if n:
-            _evaluate[max(1, -(-n // 256)), 256](
-                np.float32(tau), self.opacity, self.t_center, self.t_scale, self.position, self.rotation,
-                self.scale, self.features, self.time_channels, self.means, self.quats, self.scales,
-                self.opacities, self.feats)
+            launch(_evaluate, max(1, -(-n // 256)), 256,
+                   np.float32(tau), self.opacity, self.t_center, self.t_scale, self.position, self.rotation,
+                   self.scale, self.features, self.time_channels, self.means, self.quats, self.scales,
+                   self.opacities, self.feats)
         return self.means, self.quats, self.scales, self.opacities, self.feats

@@ -132,6 +132,46 @@ def test_stage_seconds_times_each_step_without_changing_the_image():
 
 
 @needs_kernels
+def test_workspace_keeps_its_buffers_and_changes_nothing_in_the_images():
+    ws = splat_cuda.Workspace()
+    small = _scene(11, M // 3, 3)
+    big = _scene(12, M, 3, size=(4.0, 12.0))  # at tile_size 2 many more tile entries: the key buffer grows
+    capacity = []
+    for (arrays, camera, ref), tile_size in ((small, 16), (big, 2), (small, 16)):
+        got = splat_cuda.rasterize(*arrays, camera, tile_size=tile_size, workspace=ws, out="device")
+        host = tuple(a.copy_to_host() for a in got)
+        _assert_matches(host, ref)
+        for a, b in zip(host, splat_cuda.rasterize(*arrays, camera, tile_size=tile_size)):  # fresh buffers
+            np.testing.assert_array_equal(a, b)
+        capacity.append(ws.buffer("ids", (1,), np.int32, at_least=True).shape[0])
+    assert capacity[0] < capacity[1] == capacity[2]  # grown once, then kept
+    again = splat_cuda.rasterize(*small[0], small[1], workspace=ws, out="device")
+    assert again[0] is got[0]  # the same buffers: the next call overwrites them
+    arrays, camera, ref = _scene(13, M, 9)  # another channel count: a new features buffer
+    _assert_matches(splat_cuda.rasterize(*arrays, camera, workspace=ws), ref)
+
+
+@needs_kernels
+def test_player_cuda_follows_a_moving_camera_and_time():
+    """One player, a new camera and time every frame (the camera and time reach the kernels by value:
+    on a GPU these are replayed launches with new scalars, see stg_runtime.cuda_launch)."""
+    from stg_runtime import cuda_launch
+    from stg_runtime.camera import orbit
+    model = random_model(M, "full", width=W, height=H, radius_px=(1.0, 6.0))
+    cameras = orbit(model.cameras, 3)
+    times = [0.1 * model.duration, 0.6 * model.duration, 0.9 * model.duration]
+    cuda_player, cpu_player = Player(model, device="cuda"), Player(model, device="cpu")
+    for camera, t in zip(cameras + cameras[:1], times + times[:1]):
+        got = cuda_player.render_all(camera, t)
+        want = cpu_player.render_all(camera, t)
+        for name, g, w in zip(got._fields, got, want):
+            np.testing.assert_allclose(g, w, atol=TOL, rtol=0, err_msg=f"{name} at t = {t}")
+        assert want.alpha.max() > 0.2
+    if GPU and cuda_launch._dispatcher_module() is not None:
+        assert cuda_launch._prepared  # the launches were recorded (and replayed)
+
+
+@needs_kernels
 def test_empty_and_culled_scenes_render_transparent():
     arrays, camera, _ = _scene(5, M, 3)
     means, quats, scales, opacities, features = arrays
@@ -180,19 +220,23 @@ def test_device_decoders_match_onnxruntime_on_the_host():
 def test_sh_colours_match_reference():
     from numba import cuda
 
+    from stg_runtime.camera import Camera
     from stg_runtime.decoder_cuda import sh_colours
     from stg_runtime.sh import sh_colours_reference
     rng = np.random.default_rng(3)
     means = rng.normal(size=(40, 3)).astype(np.float32)
     means[0] = [0.5, -1.0, 2.0]  # at the camera centre: the zero direction
+    R = Camera.look_at((0, 0, 0), (1, 2, 3), (0, -1, 0), 60, W, H).R
+    camera = Camera(50, 50, W / 2, H / 2, W, H, np.block([[R, -R @ np.array([[0.5], [-1.0], [2.0]])], [0, 0, 0, 1]]))
+    np.testing.assert_allclose(camera.center, [0.5, -1.0, 2.0], atol=1e-12)
     for k in (1, 4, 9, 16):
         coeffs = rng.normal(0, 2.0, (40, 3 * k)).astype(np.float32)
-        got = sh_colours(cuda.to_device(coeffs), cuda.to_device(means), (0.5, -1.0, 2.0)).copy_to_host()
-        want = sh_colours_reference(coeffs, means, (0.5, -1.0, 2.0))
+        got = sh_colours(cuda.to_device(coeffs), cuda.to_device(means), camera).copy_to_host()
+        want = sh_colours_reference(coeffs, means, camera.center)
         np.testing.assert_allclose(got, want, atol=1e-5, rtol=1e-6, err_msg=f"K = {k}")
         assert (want == 0).any() and (want > 0.5).any()  # some colours clamp at 0
     with pytest.raises(ValueError, match="not an SH layout"):
-        sh_colours(cuda.to_device(np.zeros((2, 9), np.float32)), cuda.to_device(means[:2]), (0, 0, 0))
+        sh_colours(cuda.to_device(np.zeros((2, 9), np.float32)), cuda.to_device(means[:2]), camera)
 
 
 @needs_gpu
@@ -295,4 +339,4 @@ def test_cuda_without_gpu_is_refused_clearly():
 def test_kernels_under_simulator(run_under_simulator):
     if RUN:
         pytest.skip("the kernels run directly in this process")
-    run_under_simulator(__file__, passed=20)
+    run_under_simulator(__file__, passed=22)

@@ -24,29 +24,28 @@ f64_1, f64_2 = T.float64[::1], T.float64[:, ::1]
 i32_1, i32_2 = T.int32[::1], T.int32[:, ::1]
 i64_1, i64_2 = T.int64[::1], T.int64[:, ::1]
 F, I, B = T.float64, T.int64, T.boolean  # Python floats, ints and bools as launch arguments
+CAM = T.UniTuple(T.float64, 19)  # splat_cuda.camera_params
 
 #: Per module, per kernel: its argument types, or a list of them.
 SIGNATURES = {
     "splat_cuda": {
-        "_project": (f32_2, f32_2, f32_2, f32_1, f64_2, f64_1, F, F, F, F, I, I, I, f32_2, i32_2, f64_1, i32_1,
-                     i64_2),
-        # order: int32 from sort_cuda, int64 from CuPy's argsort
-        "_duplicate": [(i32_1, i64_1, i32_1, i32_2, I, I, i64_1), (i64_1, i64_1, i32_1, i32_2, I, I, i64_1)],
-        "_ranges": [(i64_1, i32_1, i64_2, i32_1), (i64_1, i64_1, i64_2, i32_1)],
+        "_project": (f32_2, f32_2, f32_2, f32_1, CAM, I, I, I, f32_2, i32_2, i32_1, f32_2, i32_2, i64_2, i64_1),
+        "_clear": (i64_1,),
+        # keys: int32 with CuPy when they fit, else int64
+        "_duplicate": [(i32_2, i32_1, i32_2, I, I, i64_1, i32_1), (i32_2, i32_1, i32_2, I, I, i64_1, i64_1)],
+        "_ranges": [(i32_1, i32_2, i64_1, i64_2, i32_1), (i64_1, i32_2, i64_1, i64_2, i32_1)],
         "_composite": (f32_2, i32_2, f32_2, i64_2, i32_1, I, I, I, I, f32_3, f32_2, f32_2),
-        "_iota": (i32_1,),
-        "_gather_counts": (i32_1, i32_1, i32_1),
     },
     "timeeval_cuda": {
         "_evaluate": (T.float32, f32_1, f32_1, f32_1, T.float32[:, :, ::1], T.float32[:, :, ::1], f32_2, f32_2,
                       I, f32_2, f32_2, f32_2, f32_1, f32_2),
     },
     "decoder_cuda": {
-        "_decode": (f32_3, f32_2, f32_2, f64_1, f64_2, F, F, F, F, B, f32_3),
-        "_decoder_rows": (f32_3, f64_1, f64_2, F, F, F, F, f32_2),
+        "_decode": (f32_3, f32_2, f32_2, CAM, B, f32_3),
+        "_decoder_rows": (f32_3, CAM, f32_2),
         "_add_base": (f32_3, f32_2, B, f32_3),
         "_lite": (f32_3, f32_3),
-        "_sh": (f32_2, f32_2, f64_1, f32_2),
+        "_sh": (f32_2, f32_2, CAM, f32_2),
     },
     "sort_cuda": {
         "_scan_tiles": [(i32_1, i64_1, i64_1), (i64_1, i64_1, i64_1)],
