@@ -7,11 +7,13 @@
 # 1. the GPU tests: tests/test_splat_cuda.py and tests/test_sort_cuda.py run their kernels on the GPU
 #    (not the simulator);
 # 2. bench/render.py --device cuda at the paper's N3V test size (200k Gaussians, 1352x1014): FPS of
-#    lite and full models, the steps, both device sorts and decoders;
+#    lite and full models, the steps, both device sorts and decoders; bench/gpu_profile.py: each
+#    kernel's GPU time against the frame's wall-clock time, and the host's cost per call;
 # 3. gsplat: its CUDA kernels are built (gsplat_build.log) in the background from the start, on the
 #    cores our steps leave idle; then tests/test_gsplat_backend.py compares it with the torch splatter,
 #    and the render benchmark runs again with gsplat's rasterization beside ours;
-# 4. bench/train.py on the GPU with the torch splatter and with gsplat (a short run), if time is left.
+# 4. bench/train.py on the GPU with the torch splatter and with gsplat (a short run, both in train.log),
+#    if time is left and GPU_CHECK_TRAIN is not 0.
 #
 # It uses the checkout in place (PYTHONPATH, no install). Wheels in .whl/ (gsplat, say: `pip download
 # --no-deps gsplat==1.5.3 -d .whl`) are installed into a scratch folder, ahead of the installed
@@ -62,9 +64,11 @@ build=$!
 } 2>&1 | tee "$out/gpu.txt"
 
 # Ours first, so that gsplat's build cannot cost our figures.
-step 100 tests.log $py -m pytest -q -rs -p no:cacheprovider tests/test_splat_cuda.py tests/test_sort_cuda.py
+step 100 tests.log $py -m pytest -q -rs -p no:cacheprovider tests/test_splat_cuda.py tests/test_sort_cuda.py \
+    tests/test_cuda_launch.py
 status=$?
 step 80 render.log $py bench/render.py --device cuda --gaussians 200000 --size 1352x1014 --repeats 30 --no-gsplat
+step 60 profile.log $py bench/gpu_profile.py --gaussians 200000 --size 1352x1014
 
 # gsplat: wait for its build (leaving two minutes for what follows), its GPU test, then the render
 # benchmark again with gsplat beside ours.
@@ -73,8 +77,11 @@ kill $build 2>/dev/null && echo "gsplat build stopped: out of time" >>"$out/gspl
 step 50 tests_gsplat.log $py -m pytest -q -rs -p no:cacheprovider tests/test_gsplat_backend.py
 step 70 render_gsplat.log $py bench/render.py --device cuda --gaussians 200000 --size 1352x1014 --repeats 20
 
-for splatter in torch gsplat; do
-    step 40 train_$splatter.log $py bench/train.py --device cuda --splatter $splatter --threads 16 \
+if [[ ${GPU_CHECK_TRAIN:-1} != 0 ]]; then
+    step 40 train_torch.log $py bench/train.py --device cuda --splatter torch --threads 16 \
         --iterations 300 --eval-every 100 --data /tmp/stg_scene
-done
+    step 40 train_gsplat.log $py bench/train.py --device cuda --splatter gsplat --threads 16 \
+        --iterations 300 --eval-every 100 --data /tmp/stg_scene
+    cat "$out/train_torch.log" "$out/train_gsplat.log" >"$out/train.log" && rm "$out/train_torch.log" "$out/train_gsplat.log"
+fi
 exit "$status"

@@ -6,9 +6,10 @@ breakdown (time evaluation, splatting, decoder), beside the float64 numpy refere
     python bench/render.py --device cuda [--gaussians 200000] [--size 1352x1014] [--no-gsplat]
 
 --device cuda times the numba.cuda path (stg_runtime.splat_cuda: Player(device="cuda") with
-render(out="device"), i.e. without the copy to the host) and its steps (the splat with either device
-sort, the fused and the onnxruntime decoder), and gsplat's rasterization of the same Gaussians where
-gsplat and torch with CUDA are installed. It needs a real GPU.
+render(out="device"), i.e. without the copy to the host; from one camera, and from a new camera every
+frame along an orbit) and its steps (the splat with either device sort and a kept Workspace, the fused
+and the onnxruntime decoder), and gsplat's rasterization of the same Gaussians where gsplat and torch
+with CUDA are installed. It needs a real GPU.
 
 Scenes come from stg_runtime.demo.random_model: Gaussians uniform in the volume of a 60-degree frustum
 between depths 2 and 10, projected 3-sigma radius log-uniform in --radius pixels (default 0.5..10,
@@ -54,6 +55,7 @@ def cuda_main(args) -> None:
                             if splat_cuda.simulated() else "") + "; run it on a machine with an NVIDIA GPU")
     from numba import cuda
 
+    from stg_runtime.camera import orbit
     from stg_runtime.decoder_cuda import FusedDecoder, OnnxDeviceDecoder, cuda_provider_available
     from stg_runtime.timeeval_cuda import DeviceSegment
 
@@ -65,10 +67,11 @@ def cuda_main(args) -> None:
     print(f"GPU: {name.decode() if isinstance(name, bytes) else name}; "
           f"numba {numba.__version__}; device sort: {'CuPy' if splat_cuda._cupy() is not None else 'numba radix'}")
     print(f"{args.gaussians} Gaussians at {w}x{h}, median of {args.repeats} renders (output left on the GPU)\n")
-    print("splat ms: with the sort above; numba sort: the same splat with stg_runtime.sort_cuda's radix sort; "
-          "decode: fused kernel; onnx: onnxruntime "
-          + ("CUDA provider" if cuda_provider_available() else "CPU provider, through the host") + "\n")
-    print(f"{'model':<8}{'FPS':>8}{'ms/frame':>10}{'eval ms':>9}{'splat ms':>10}{'numba sort':>12}"
+    print("ms/frame: Player.render from one camera; moving: from a new camera every frame; splat ms: with "
+          "the sort above; numba sort: the same splat with stg_runtime.sort_cuda's radix sort; decode: fused "
+          "kernel; onnx: onnxruntime " + ("CUDA provider" if cuda_provider_available() else
+                                          "CPU provider, through the host") + "\n")
+    print(f"{'model':<8}{'FPS':>8}{'ms/frame':>10}{'moving':>8}{'eval ms':>9}{'splat ms':>10}{'numba sort':>12}"
           f"{'decode ms':>11}{'onnx ms':>9}{'gsplat ms':>11}")
 
     def step_ms(fn, repeats):
@@ -86,24 +89,32 @@ def cuda_main(args) -> None:
         cam, seg = model.cameras[0], model.segments[0]
         ts = iter(np.linspace(0, player.duration, 2 * args.repeats + 2))
         total = gpu_seconds(lambda: player.render(cam, next(ts), out="device"), args.repeats)
+        path = iter(orbit(model.cameras, 2 * args.repeats + 2))
+        ts = iter(np.linspace(0, player.duration, 2 * args.repeats + 2))
+        moving = gpu_seconds(lambda: player.render(next(path), next(ts), out="device"), args.repeats)
         dseg = DeviceSegment(seg)
         t_eval = gpu_seconds(lambda: dseg.evaluate(0.5), args.repeats)
         g = dseg.evaluate(0.5)
-        t_splat = gpu_seconds(lambda: splat_cuda.rasterize(*g, cam, out="device"), args.repeats)
-        t_numba_sort = gpu_seconds(lambda: splat_cuda.rasterize(*g, cam, out="device", sort="numba"), args.repeats)
+        ws = {sort: splat_cuda.Workspace() for sort in ("auto", "numba")}
+        t_splat = gpu_seconds(lambda: splat_cuda.rasterize(*g, cam, out="device", workspace=ws["auto"]), args.repeats)
+        t_numba_sort = gpu_seconds(lambda: splat_cuda.rasterize(*g, cam, out="device", sort="numba",
+                                                                workspace=ws["numba"]), args.repeats)
         for sort in ("auto", "numba"):
             steps.append((f"{kind}, {sort} sort",
-                          step_ms(lambda: splat_cuda.rasterize(*g, cam, out="device", sort=sort), args.repeats)))
+                          step_ms(lambda: splat_cuda.rasterize(*g, cam, out="device", sort=sort, workspace=ws[sort]),
+                                  args.repeats)))
         t_dec = t_onnx = 0.0
         if kind == "full":
-            feats = splat_cuda.rasterize(*g, cam, out="device")[0]
+            feats = splat_cuda.rasterize(*g, cam, out="device", workspace=ws["auto"])[0]
             fused = FusedDecoder.from_onnx(seg.decoder, seg.activation)
-            t_dec = gpu_seconds(lambda: fused(feats, cam), args.repeats)
+            rgb = splat_cuda.device_empty((h, w, 3), np.float32)
+            t_dec = gpu_seconds(lambda: fused(feats, cam, out=rgb), args.repeats)
             onnx = OnnxDeviceDecoder(seg.decoder, seg.activation)
             t_onnx = gpu_seconds(lambda: onnx(feats, cam), args.repeats)
         t_gsplat = _gsplat_seconds([a.copy_to_host() for a in g], cam, args.repeats) if args.gsplat else None
         gs = f"{1000 * t_gsplat:>11.2f}" if t_gsplat else f"{'n/a':>11}"
-        print(f"{kind:<8}{1 / total:>8.1f}{1000 * total:>10.2f}{1000 * t_eval:>9.2f}{1000 * t_splat:>10.2f}"
+        print(f"{kind:<8}{1 / total:>8.1f}{1000 * total:>10.2f}{1000 * moving:>8.2f}{1000 * t_eval:>9.2f}"
+              f"{1000 * t_splat:>10.2f}"
               f"{1000 * t_numba_sort:>12.2f}{1000 * t_dec:>11.2f}{1000 * t_onnx:>9.2f}{gs}")
     names = list(steps[0][1])
     print("\nsplat steps, ms (the device synchronised after each step, so they add up to a little more than "
