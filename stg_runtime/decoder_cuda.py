@@ -25,11 +25,12 @@ import numpy as np
 from numba import cuda
 
 from .camera import Camera
+from .cuda_launch import launch
 from .cuda_math import dmax, dmin
 from .decoder import Decoder
+from .projection import camera_params
 from .sh import C0 as SH_C0, C1 as SH_C1, C2 as SH_C2, C3 as SH_C3, degree_of
-from .cuda_launch import launch
-from .splat_cuda import camera_params, device_empty, simulated
+from .splat_cuda import device_empty, simulated
 
 CUDA_PROVIDER = "CUDAExecutionProvider"
 
@@ -41,7 +42,7 @@ def _grid2d(W, H, block=16):
 @cuda.jit(device=True)
 def _ray(cam, ix, iy):
     """The unit world-space ray through pixel centre (ix, iy), R^T d (3 float64; cam as
-    splat_cuda.camera_params)."""
+    projection.camera_params)."""
     du = (ix + 0.5 - cam[14]) / cam[12]
     dv = (iy + 0.5 - cam[15]) / cam[13]
     n = math.sqrt(du * du + dv * dv + 1.0)

@@ -7,12 +7,13 @@ Same semantics as stg_runtime.splat_reference.rasterize_reference (the float64 t
 spec); the results agree with it to float32 rounding. The pipeline, one numba kernel per step (two
 parallel regions per frame: a region costs milliseconds when the other core is busy):
 
-1. _project (parallel over Gaussians): camera-space depth, the EWA 2D covariance and its conic in
-   float64, the 3-sigma radius, and the rectangle of pixels to visit: the pixel centres within the
-   radius (the spec's footprint) that can also reach alpha >= 1/255 (the bounding box of the ellipse
-   power <= log(255 opacity), with a margin), clipped to the image. Culled Gaussians (near plane,
-   determinant, opacity floor, nothing to visit) get no tiles. Each kept Gaussian gets a 64-byte
-   record (see _PACKED): all the compositor reads about it.
+1. _project (parallel over Gaussians): stg_runtime.projection.footprint (shared with the GPU
+   splatter), in float64: camera-space depth, the EWA 2D covariance's conic, and the rectangle of
+   pixels to visit: the pixel centres within the 3-sigma radius (the spec's footprint) that can also
+   reach alpha >= 1/255 (the bounding box of the ellipse power <= log(255 opacity), with a margin),
+   clipped to the image. Culled Gaussians (near plane, determinant, opacity floor, nothing to visit)
+   get no tiles. Each kept Gaussian gets a 64-byte record (see _PACKED): all the compositor reads
+   about it.
 2. _sort_by_depth: the kept Gaussians in (depth, index) order (radix sort; exactly the float64 order).
 3. _bin: every Gaussian is listed in each tile its rectangle meets; lists come out in depth order.
 4. _composite (parallel over tiles, taken longest list first from an atomic counter): a tile's state
@@ -38,7 +39,8 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from .camera import Camera
-from .splat_reference import BLUR, MAX_ALPHA, MIN_ALPHA, NEAR, T_STOP
+from .projection import camera_params, footprint
+from .splat_reference import MAX_ALPHA, MIN_ALPHA, T_STOP
 
 #: The per-Gaussian record the compositor reads, float32, one 64-byte cache line: mean x, mean y
 #: (pixels), conic A/2, B, C/2, opacity, depth z, thr = log(255 opacity) + 0.01 (alpha >= 1/255 needs
@@ -160,112 +162,34 @@ def _blend(px, py, t, mx, my, ha, cb, hc, o, left, right, bottom):
     return w, (t_next if add else (-t if stop else t)), stop
 
 
+_footprint = numba.njit(inline="always")(footprint)
+
+
 @numba.njit(parallel=True, cache=True)
-def _project(means, quats, scales, opacities, features, Rc, tc, fx, fy, cx, cy, width, height, tile_size,
-             packed, tiles, depth):
-    """Per Gaussian i: packed[i] = its record (see _PACKED); tiles[i] = [tx0, tx1, ty0, ty1], the
-    inclusive range of tiles its pixel rectangle meets (tx0 > tx1 when culled); depth[i] = its
-    camera-space z (float64, for sorting)."""
-    tan_x = 0.3 * width / (2.0 * fx)
-    tan_y = 0.3 * height / (2.0 * fy)
-    lim_x0, lim_x1 = -(cx / fx + tan_x), (width - cx) / fx + tan_x
-    lim_y0, lim_y1 = -(cy / fy + tan_y), (height - cy) / fy + tan_y
-    its = 1.0 / tile_size
+def _project(means, quats, scales, opacities, features, cam, width, height, tile_size, packed, tiles, depth):
+    """Per Gaussian i (stg_runtime.projection.footprint; cam as projection.camera_params):
+    packed[i] = its record (see _PACKED); tiles[i] = [tx0, tx1, ty0, ty1], the inclusive range of tiles
+    its pixel rectangle meets (tx0 > tx1 when culled); depth[i] = its camera-space z (float64, for
+    sorting)."""
     for i in numba.prange(means.shape[0]):
-        tiles[i, 0] = 1
-        tiles[i, 1] = 0
-        tiles[i, 2] = 1
-        tiles[i, 3] = 0
-        wx = np.float64(means[i, 0])
-        wy = np.float64(means[i, 1])
-        wz = np.float64(means[i, 2])
-        x = Rc[0, 0] * wx + Rc[0, 1] * wy + Rc[0, 2] * wz + tc[0]
-        y = Rc[1, 0] * wx + Rc[1, 1] * wy + Rc[1, 2] * wz + tc[1]
-        z = Rc[2, 0] * wx + Rc[2, 1] * wy + Rc[2, 2] * wz + tc[2]
+        z, u, v, ca, cb, cc, thr, u0, u1, v0, v1 = _footprint(cam, width, height, means, quats, scales, opacities, i)
         depth[i] = z
-        o = np.float64(opacities[i])
-        if not (z > NEAR) or not (o >= MIN_ALPHA):
+        if u0 > u1:
+            tiles[i, 0] = 1
+            tiles[i, 1] = 0
+            tiles[i, 2] = 1
+            tiles[i, 3] = 0
             continue
-        # Rotation of the normalised quaternion (a zero quaternion is the identity).
-        qw = np.float64(quats[i, 0])
-        qx = np.float64(quats[i, 1])
-        qy = np.float64(quats[i, 2])
-        qz = np.float64(quats[i, 3])
-        qn = np.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-        if qn > 0.0:
-            qn = 1.0 / qn
-            qw, qx, qy, qz = qw * qn, qx * qn, qy * qn, qz * qn
-        else:
-            qw = 1.0
-        r00 = 1.0 - 2.0 * (qy * qy + qz * qz)
-        r01 = 2.0 * (qx * qy - qw * qz)
-        r02 = 2.0 * (qx * qz + qw * qy)
-        r10 = 2.0 * (qx * qy + qw * qz)
-        r11 = 1.0 - 2.0 * (qx * qx + qz * qz)
-        r12 = 2.0 * (qy * qz - qw * qx)
-        r20 = 2.0 * (qx * qz - qw * qy)
-        r21 = 2.0 * (qy * qz + qw * qx)
-        r22 = 1.0 - 2.0 * (qx * qx + qy * qy)
-        # EWA Jacobian rows (fx/z, 0, -fx xz/z), (0, fy/z, -fy yz/z), x/z and y/z clamped.
-        iz = 1.0 / z
-        xz = min(max(x * iz, lim_x0), lim_x1)
-        yz = min(max(y * iz, lim_y0), lim_y1)
-        j00 = fx * iz
-        j02 = -j00 * xz
-        j11 = fy * iz
-        j12 = -j11 * yz
-        # cov2d = (J M)(J M)^T with M = Rc R S, whose columns are the scaled axes in camera space.
-        a = 0.0
-        b = 0.0
-        c = 0.0
-        for k in range(3):
-            if k == 0:
-                g0, g1, g2, s = r00, r10, r20, np.float64(scales[i, 0])
-            elif k == 1:
-                g0, g1, g2, s = r01, r11, r21, np.float64(scales[i, 1])
-            else:
-                g0, g1, g2, s = r02, r12, r22, np.float64(scales[i, 2])
-            m0 = (Rc[0, 0] * g0 + Rc[0, 1] * g1 + Rc[0, 2] * g2) * s
-            m1 = (Rc[1, 0] * g0 + Rc[1, 1] * g1 + Rc[1, 2] * g2) * s
-            m2 = (Rc[2, 0] * g0 + Rc[2, 1] * g1 + Rc[2, 2] * g2) * s
-            t0 = j00 * m0 + j02 * m2
-            t1 = j11 * m1 + j12 * m2
-            a += t0 * t0
-            b += t0 * t1
-            c += t1 * t1
-        a += BLUR
-        c += BLUR
-        det = a * c - b * b
-        if not (det > 0.0):
-            continue
-        mid = 0.5 * (a + c)
-        r = np.ceil(3.0 * np.sqrt(mid + np.sqrt(max(0.1, mid * mid - det))))
-        u = fx * (x * iz) + cx
-        v = fy * (y * iz) + cy
-        # alpha >= 1/255 needs power <= log(255 o); outside the ellipse power <= thr (0.01 of margin
-        # for rounding) alpha is certainly below the floor. Its bounding box has half-widths
-        # sqrt(2 thr a), sqrt(2 thr c); intersected with the footprint |p - mu| <= r and the image.
-        thr = np.float64(np.log(np.float32(255.0 * o))) + 0.01  # float32 log: the margin covers it
-        hx = min(r, np.sqrt(2.0 * thr * a))
-        hy = min(r, np.sqrt(2.0 * thr * c))
-        u0 = max(0.0, np.ceil(u - hx - 0.5))
-        u1 = min(width - 1.0, np.floor(u + hx - 0.5))
-        v0 = max(0.0, np.ceil(v - hy - 0.5))
-        v1 = min(height - 1.0, np.floor(v + hy - 0.5))
-        if u0 > u1 or v0 > v1:
-            continue
-        # Tiles k // ts, as floor((k + 0.5) / ts): never within rounding of an integer.
-        tiles[i, 0] = np.int32(np.floor((u0 + 0.5) * its))
-        tiles[i, 1] = np.int32(np.floor((u1 + 0.5) * its))
-        tiles[i, 2] = np.int32(np.floor((v0 + 0.5) * its))
-        tiles[i, 3] = np.int32(np.floor((v1 + 0.5) * its))
+        tiles[i, 0] = u0 // tile_size
+        tiles[i, 1] = u1 // tile_size
+        tiles[i, 2] = v0 // tile_size
+        tiles[i, 3] = v1 // tile_size
         packed[i, 0] = u
         packed[i, 1] = v
-        idet = 1.0 / det
-        packed[i, 2] = 0.5 * c * idet
-        packed[i, 3] = -b * idet
-        packed[i, 4] = 0.5 * a * idet
-        packed[i, 5] = o
+        packed[i, 2] = ca
+        packed[i, 3] = cb
+        packed[i, 4] = cc
+        packed[i, 5] = opacities[i]
         packed[i, 6] = z
         packed[i, 7] = thr
         packed[i, 8] = u0
@@ -576,8 +500,7 @@ def rasterize(means, quats, scales, opacities, features, camera: Camera, *, tile
     depth = np.empty(m, np.float64)
     threads = numba.get_num_threads()
     with numba.parallel_chunksize(2048):  # dynamic scheduling: robust to a busy core
-        _project(means, quats, scales, opacities, features, np.ascontiguousarray(camera.R),
-                 np.ascontiguousarray(camera.t), camera.fx, camera.fy, camera.cx, camera.cy, W, H, tile_size,
+        _project(means, quats, scales, opacities, features, camera_params(camera), W, H, tile_size,
                  packed_all, tiles_all, depth)
     order = _sort_by_depth(tiles_all, depth)
     tiles_x = -(-W // tile_size)

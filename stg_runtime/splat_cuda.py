@@ -52,8 +52,9 @@ from numba import cuda
 from . import sort_cuda
 from .cuda_launch import launch
 from .camera import Camera
-from .cuda_math import dmax, dmin
-from .splat_reference import BLUR, MAX_ALPHA, MIN_ALPHA, NEAR, T_STOP
+from .cuda_math import dmin
+from .projection import camera_params, footprint
+from .splat_reference import MAX_ALPHA, MIN_ALPHA, T_STOP
 
 _CUPY: list = []
 
@@ -124,123 +125,15 @@ def require() -> None:
                            "starting Python to run the GPU kernels in numba's (slow) CPU simulator")
 
 
-def camera_params(camera: Camera) -> tuple:
-    """The camera as the kernels take it, one tuple argument of CAMERA_PARAMS float64: R row-major
-    (0..8), t (9..11), fx, fy, cx, cy (12..15) and the camera centre (16..18)."""
-    w2c = camera.world_to_camera
-    return (*w2c[:3, :3].ravel().tolist(), *w2c[:3, 3].tolist(), camera.fx, camera.fy, camera.cx, camera.cy,
-            *camera.center.tolist())
-
-
-CAMERA_PARAMS = 19
-
-
-@cuda.jit(device=True)
-def _project_one(i, means, quats, scales, opacities, cam, width, height, tile_size, packed, rect, depth_bits):
-    """Gaussian i's record, rectangle and depth (float32 z, +inf when culled) in depth_bits[i, 1]; returns
-    the number of tiles it meets (0: culled)."""
-    depth_bits[i, 1] = math.inf
-    fx, fy, cx, cy = cam[12], cam[13], cam[14], cam[15]
-    tan_x = 0.3 * width / (2.0 * fx)
-    tan_y = 0.3 * height / (2.0 * fy)
-    wx = np.float64(means[i, 0])
-    wy = np.float64(means[i, 1])
-    wz = np.float64(means[i, 2])
-    x = cam[0] * wx + cam[1] * wy + cam[2] * wz + cam[9]
-    y = cam[3] * wx + cam[4] * wy + cam[5] * wz + cam[10]
-    z = cam[6] * wx + cam[7] * wy + cam[8] * wz + cam[11]
-    o = np.float64(opacities[i])
-    if not (z > NEAR) or not (o >= MIN_ALPHA):
-        return 0
-    qw = np.float64(quats[i, 0])
-    qx = np.float64(quats[i, 1])
-    qy = np.float64(quats[i, 2])
-    qz = np.float64(quats[i, 3])
-    qn = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-    if qn > 0.0:
-        qn = 1.0 / qn
-        qw, qx, qy, qz = qw * qn, qx * qn, qy * qn, qz * qn
-    else:
-        qw = 1.0
-    r00 = 1.0 - 2.0 * (qy * qy + qz * qz)
-    r01 = 2.0 * (qx * qy - qw * qz)
-    r02 = 2.0 * (qx * qz + qw * qy)
-    r10 = 2.0 * (qx * qy + qw * qz)
-    r11 = 1.0 - 2.0 * (qx * qx + qz * qz)
-    r12 = 2.0 * (qy * qz - qw * qx)
-    r20 = 2.0 * (qx * qz - qw * qy)
-    r21 = 2.0 * (qy * qz + qw * qx)
-    r22 = 1.0 - 2.0 * (qx * qx + qy * qy)
-    iz = 1.0 / z
-    xz = dmin(dmax(x * iz, -(cx / fx + tan_x)), (width - cx) / fx + tan_x)
-    yz = dmin(dmax(y * iz, -(cy / fy + tan_y)), (height - cy) / fy + tan_y)
-    j00 = fx * iz
-    j02 = -j00 * xz
-    j11 = fy * iz
-    j12 = -j11 * yz
-    a = 0.0
-    b = 0.0
-    c = 0.0
-    for k in range(3):  # columns of Rc R S: the scaled axes in camera space
-        if k == 0:
-            g0, g1, g2, s = r00, r10, r20, np.float64(scales[i, 0])
-        elif k == 1:
-            g0, g1, g2, s = r01, r11, r21, np.float64(scales[i, 1])
-        else:
-            g0, g1, g2, s = r02, r12, r22, np.float64(scales[i, 2])
-        m0 = (cam[0] * g0 + cam[1] * g1 + cam[2] * g2) * s
-        m1 = (cam[3] * g0 + cam[4] * g1 + cam[5] * g2) * s
-        m2 = (cam[6] * g0 + cam[7] * g1 + cam[8] * g2) * s
-        t0 = j00 * m0 + j02 * m2
-        t1 = j11 * m1 + j12 * m2
-        a += t0 * t0
-        b += t0 * t1
-        c += t1 * t1
-    a += BLUR
-    c += BLUR
-    det = a * c - b * b
-    if not (det > 0.0):
-        return 0
-    mid = 0.5 * (a + c)
-    # math.ceil/floor give integers: their arguments are clamped to where the result is exact and the
-    # clipping below unchanged (float64 beyond int64 has no defined conversion on the device).
-    r = 1.0 * math.ceil(dmin(3.0 * math.sqrt(mid + math.sqrt(dmax(0.1, mid * mid - det))), 1e15))
-    u = fx * (x * iz) + cx
-    v = fy * (y * iz) + cy
-    thr = math.log(255.0 * o) + 0.01  # alpha >= 1/255 needs power <= log(255 o); 0.01 of margin
-    hx = dmin(r, math.sqrt(2.0 * thr * a))
-    hy = dmin(r, math.sqrt(2.0 * thr * c))
-    fu0 = dmax(0.0, 1.0 * math.ceil(dmin(dmax(u - hx - 0.5, -2.0), width + 2.0)))
-    fu1 = dmin(width - 1.0, 1.0 * math.floor(dmin(dmax(u + hx - 0.5, -2.0), width + 2.0)))
-    fv0 = dmax(0.0, 1.0 * math.ceil(dmin(dmax(v - hy - 0.5, -2.0), height + 2.0)))
-    fv1 = dmin(height - 1.0, 1.0 * math.floor(dmin(dmax(v + hy - 0.5, -2.0), height + 2.0)))
-    if fu0 > fu1 or fv0 > fv1:
-        return 0
-    u0 = np.int32(fu0)
-    u1 = np.int32(fu1)
-    v0 = np.int32(fv0)
-    v1 = np.int32(fv1)
-    rect[i, 0] = u0
-    rect[i, 1] = u1
-    rect[i, 2] = v0
-    rect[i, 3] = v1
-    depth_bits[i, 1] = z
-    idet = 1.0 / det
-    packed[i, 0] = u
-    packed[i, 1] = v
-    packed[i, 2] = 0.5 * c * idet
-    packed[i, 3] = -b * idet
-    packed[i, 4] = 0.5 * a * idet
-    packed[i, 5] = o
-    packed[i, 6] = z
-    return (u1 // tile_size - u0 // tile_size + 1) * (v1 // tile_size - v0 // tile_size + 1)
+_footprint = cuda.jit(device=True, inline=True)(footprint)
 
 
 @cuda.jit
 def _project(means, quats, scales, opacities, cam, width, height, tile_size, packed, rect, counts, depth_bits,
              depth_ids, tile_range, counters):
-    """Thread i: Gaussian i's record, rectangle, tile count and depth key (depth_ids[i, 0] = i, and the
-    float32 view of the same memory depth_bits[i, 1] = z); tile i's range set to empty (the grid covers
+    """Thread i: Gaussian i's record, rectangle and tile count (stg_runtime.projection.footprint; cam as
+    projection.camera_params) and its depth key (depth_ids[i, 0] = i, and through the float32 view of the
+    same memory depth_bits[i, 1] = z, +inf when culled); tile i's range set to empty (the grid covers
     max(M, number of tiles)). Per block: counters[0] += the tiles met, counters[1] += the Gaussians kept."""
     i = cuda.grid(1)
     if i < tile_range.shape[0]:
@@ -248,9 +141,23 @@ def _project(means, quats, scales, opacities, cam, width, height, tile_size, pac
         tile_range[i, 1] = 0
     n = 0
     if i < means.shape[0]:
+        z, u, v, ca, cb, cc, _, u0, u1, v0, v1 = _footprint(cam, width, height, means, quats, scales, opacities, i)
         depth_ids[i, 0] = i
-        n = _project_one(i, means, quats, scales, opacities, cam, width, height, tile_size, packed, rect,
-                         depth_bits)
+        depth_bits[i, 1] = math.inf
+        if u0 <= u1:
+            rect[i, 0] = u0
+            rect[i, 1] = u1
+            rect[i, 2] = v0
+            rect[i, 3] = v1
+            n = (u1 // tile_size - u0 // tile_size + 1) * (v1 // tile_size - v0 // tile_size + 1)
+            depth_bits[i, 1] = z
+            packed[i, 0] = u
+            packed[i, 1] = v
+            packed[i, 2] = ca
+            packed[i, 3] = cb
+            packed[i, 4] = cc
+            packed[i, 5] = opacities[i]
+            packed[i, 6] = z
         counts[i] = n
     block_tiles = cuda.shared.array(1, np.int64)
     if cuda.threadIdx.x == 0:

@@ -19,12 +19,14 @@ import types
 from numba import cuda
 from numba import types as T
 
+from stg_runtime.projection import CAMERA_PARAMS
+
 f32_1, f32_2, f32_3 = T.float32[::1], T.float32[:, ::1], T.float32[:, :, ::1]
 f64_1, f64_2 = T.float64[::1], T.float64[:, ::1]
 i32_1, i32_2 = T.int32[::1], T.int32[:, ::1]
 i64_1, i64_2 = T.int64[::1], T.int64[:, ::1]
 F, I, B = T.float64, T.int64, T.boolean  # Python floats, ints and bools as launch arguments
-CAM = T.UniTuple(T.float64, 19)  # splat_cuda.camera_params
+CAM = T.UniTuple(T.float64, CAMERA_PARAMS)  # projection.camera_params
 
 #: Per module, per kernel: its argument types, or a list of them.
 SIGNATURES = {

@@ -1,0 +1,64 @@
+"""stg_runtime.projection.footprint, run as plain Python (numba compiles the same function for the CPU
+and GPU splatters), against the float64 reference projection and a brute-force pixel test."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from stg_runtime.projection import CAMERA_PARAMS, camera_params, footprint
+from stg_runtime.splat_reference import MAX_ALPHA, MIN_ALPHA, project_reference
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from test_splat import random_scene  # noqa: E402
+
+
+def test_camera_params_layout():
+    from stg_runtime.camera import Camera
+    camera = Camera.look_at((1, 2, 3), (0, 0, 10), (0, -1, 0), 50, 64, 48)
+    cam = camera_params(camera)
+    assert len(cam) == CAMERA_PARAMS and all(type(v) is float for v in cam)
+    np.testing.assert_array_equal(np.reshape(cam[:9], (3, 3)), camera.R)
+    np.testing.assert_array_equal(cam[9:12], camera.t)
+    assert cam[12:16] == (camera.fx, camera.fy, camera.cx, camera.cy)
+    np.testing.assert_allclose(cam[16:19], camera.center)
+    tan_x = camera.width / (2 * camera.fx)  # x/z is clamped to 1.3 x tan(half field of view) (centred)
+    np.testing.assert_allclose(cam[19:21], [-1.3 * tan_x, 1.3 * tan_x])
+
+
+def test_footprint_matches_the_reference_and_covers_every_pixel_it_can_reach():
+    rng = np.random.default_rng(5)
+    W, H = 64, 48
+    (means, quats, scales, opacities, _), camera = random_scene(rng, 300, W, H, 3, opacity=(0.0, 0.3))
+    ref = project_reference(means, quats, scales, camera)
+    cam = camera_params(camera)
+    px, py = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    drawn = empty = 0
+    for i in range(len(opacities)):
+        z, u, v, ca, cb, cc, thr, u0, u1, v0, v1 = footprint(cam, W, H, means, quats, scales, opacities, i)
+        np.testing.assert_allclose(z, ref.depth[i], rtol=1e-12, atol=1e-12)
+        if not (ref.visible[i] and opacities[i] >= MIN_ALPHA):
+            assert u0 > u1, i
+            continue
+        # Every pixel centre within the radius where alpha reaches 1/255 must be in the rectangle.
+        A, B, C = ref.conic[i]
+        dx, dy = px - ref.mean2d[i, 0], py - ref.mean2d[i, 1]
+        power = 0.5 * (A * dx * dx + C * dy * dy) + B * dx * dy
+        alpha = np.minimum(MAX_ALPHA, opacities[i] * np.exp(-power))
+        r = ref.radius[i]
+        reach = (np.abs(dx) <= r) & (np.abs(dy) <= r) & (power >= 0) & (alpha >= MIN_ALPHA)
+        ys, xs = np.nonzero(reach)
+        if u0 > u1:
+            assert not reach.any(), i
+            empty += 1
+            continue
+        drawn += 1
+        np.testing.assert_allclose([u, v], ref.mean2d[i], rtol=1e-12)
+        np.testing.assert_allclose([2 * ca, cb, 2 * cc], ref.conic[i], rtol=1e-9)
+        np.testing.assert_allclose(thr, np.log(255 * np.float64(opacities[i])) + 0.01, atol=1e-6)
+        assert 0 <= u0 <= u1 < W and 0 <= v0 <= v1 < H and all(isinstance(k, int) for k in (u0, u1, v0, v1))
+        assert np.all((xs >= u0) & (xs <= u1) & (ys >= v0) & (ys <= v1)), i
+        # ... and no wider than the radius allows.
+        assert u0 >= np.ceil(ref.mean2d[i, 0] - r - 0.5) and u1 <= np.floor(ref.mean2d[i, 0] + r - 0.5)
+    assert drawn > 100 and empty > 5  # both cases were seen
