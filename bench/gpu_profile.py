@@ -68,6 +68,7 @@ def main() -> None:
     from stg_runtime import decoder_cuda, splat_cuda
     from stg_runtime.camera import orbit
     from stg_runtime.demo import random_model
+    from stg_runtime.projection import camera_params
     from stg_runtime.timeeval_cuda import DeviceSegment
 
     torch.zeros(1, device="cuda")
@@ -113,7 +114,7 @@ def main() -> None:
     ranges = cuda.device_array((64, 2), np.int64)
     ids = cuda.device_array(1024, np.int32)
     ranges_args = (keys, order, counters, ranges, ids)
-    cams = [splat_cuda.camera_params(c) for c in orbit(model.cameras, 2)]
+    cams = [camera_params(c) for c in orbit(model.cameras, 2)]
     empty = cuda.device_array((0, 3), np.float32)  # _sh over no Gaussians: only the launch
     costs = {
         "numba launch, 5 array args (_ranges)": lambda: splat_cuda._ranges[4, 256](*ranges_args),
@@ -129,7 +130,7 @@ def main() -> None:
         "int(cupy_array[-1])": lambda a=cupy.arange(10): int(a[-1]),
         "cupy elementwise (a - b)": lambda a=cupy.arange(200000), b=cupy.arange(200000): a - b,
         "cupy.cumsum 200k int64": lambda a=cupy.arange(200000): cupy.cumsum(a),
-        "camera_params": lambda: splat_cuda.camera_params(cam),
+        "camera_params": lambda: camera_params(cam),
     }
     print("host cost per call (us):")
     for name, fn in costs.items():
