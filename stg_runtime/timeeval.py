@@ -1,6 +1,7 @@
 """Time evaluation of Spacetime Gaussians (paper Eq. 7-10; formats/stg-v1.md, section 2)."""
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numba
@@ -24,47 +25,66 @@ class GaussiansAt(NamedTuple):
     features: np.ndarray
 
 
+def opacity_at(tau, opacity, t_center, t_scale, i):
+    """Gaussian i's temporal opacity at normalised time tau (Eq. 7), float32 in, float32 out."""
+    d = tau - t_center[i]
+    return opacity[i] * math.exp(-t_scale[i] * d * d)
+
+
+def gaussian_at(tau, t_center, position, rotation, scale, features, time_channels, i,
+                means, quats, scales, feats, j):
+    """Row j of means, quats (unit wxyz; a zero quaternion gives the identity), scales and feats: segment
+    Gaussian i at normalised time tau (Eq. 8-10: polynomials in tau - t_center by Horner's rule; the last
+    time_channels features times tau - t_center).
+
+    opacity_at and gaussian_at are plain Python that numba compiles for each target: the CPU's
+    _evaluate here, and stg_runtime.timeeval_cuda's kernel (so they call no helper functions)."""
+    d = tau - t_center[i]
+    n_pos = position.shape[1]
+    n_rot = rotation.shape[1]
+    for a in range(3):  # Horner: b_0 + d (b_1 + d (b_2 + ...))
+        acc = position[i, n_pos - 1, a]
+        for k in range(n_pos - 2, -1, -1):
+            acc = acc * d + position[i, k, a]
+        means[j, a] = acc
+    norm = 0.0
+    for a in range(4):
+        acc = rotation[i, n_rot - 1, a]
+        for k in range(n_rot - 2, -1, -1):
+            acc = acc * d + rotation[i, k, a]
+        quats[j, a] = acc
+        norm += acc * acc
+    norm = math.sqrt(norm)
+    if norm > 0.0:
+        for a in range(4):
+            quats[j, a] /= norm
+    else:
+        quats[j, 0] = 1.0
+    for a in range(3):
+        scales[j, a] = scale[i, a]
+    channels = features.shape[1]
+    for c in range(channels - time_channels):
+        feats[j, c] = features[i, c]
+    for c in range(channels - time_channels, channels):
+        feats[j, c] = d * features[i, c]
+
+
+_opacity_at = numba.njit(inline="always")(opacity_at)
+_gaussian_at = numba.njit(inline="always")(gaussian_at)
+
+
 @numba.njit(cache=True)
 def _temporal_opacity(opacity, t_center, t_scale, tau, out):
     for i in range(opacity.shape[0]):
-        d = tau - t_center[i]
-        out[i] = opacity[i] * np.exp(-t_scale[i] * d * d)
+        out[i] = _opacity_at(tau, opacity, t_center, t_scale, i)
 
 
 @numba.njit(parallel=True, cache=True)
 def _evaluate(index, tau, t_center, position, rotation, scale, features, time_channels,
               means, quats, scales, feats):
-    n_pos = position.shape[1]
-    n_rot = rotation.shape[1]
-    channels = features.shape[1]
-    first_time = channels - time_channels
     for j in numba.prange(index.shape[0]):
-        i = index[j]
-        d = tau - t_center[i]
-        for a in range(3):  # Horner: b_0 + d (b_1 + d (b_2 + ...))
-            acc = position[i, n_pos - 1, a]
-            for k in range(n_pos - 2, -1, -1):
-                acc = acc * d + position[i, k, a]
-            means[j, a] = acc
-        norm = 0.0
-        for a in range(4):
-            acc = rotation[i, n_rot - 1, a]
-            for k in range(n_rot - 2, -1, -1):
-                acc = acc * d + rotation[i, k, a]
-            quats[j, a] = acc
-            norm += acc * acc
-        norm = np.sqrt(norm)
-        if norm > 0.0:
-            for a in range(4):
-                quats[j, a] /= norm
-        else:  # a zero quaternion has no rotation; use the identity
-            quats[j, 0] = 1.0
-        for a in range(3):
-            scales[j, a] = scale[i, a]
-        for c in range(first_time):
-            feats[j, c] = features[i, c]
-        for c in range(first_time, channels):
-            feats[j, c] = d * features[i, c]
+        _gaussian_at(tau, t_center, position, rotation, scale, features, time_channels, index[j],
+                     means, quats, scales, feats, j)
 
 
 def time_channels(segment: Segment) -> int:

@@ -7,52 +7,27 @@ decision, and the same (depth, index) order among the rest).
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from numba import cuda
 
 from .cuda_launch import launch
 from .model import Segment
-from .timeeval import time_channels
+from .timeeval import gaussian_at, opacity_at, time_channels
+
+
+_opacity_at = cuda.jit(device=True, inline=True)(opacity_at)
+_gaussian_at = cuda.jit(device=True, inline=True)(gaussian_at)
 
 
 @cuda.jit
 def _evaluate(tau, opacity, t_center, t_scale, position, rotation, scale, features, time_channels,
               means, quats, scales, opacities, feats):
+    """Thread i: Gaussian i at normalised time tau (timeeval.opacity_at and gaussian_at)."""
     i = cuda.grid(1)
-    if i >= opacity.shape[0]:
-        return
-    d = tau - t_center[i]
-    opacities[i] = opacity[i] * math.exp(-t_scale[i] * d * d)
-    n_pos = position.shape[1]
-    n_rot = rotation.shape[1]
-    for a in range(3):  # Horner: b_0 + d (b_1 + d (b_2 + ...))
-        acc = position[i, n_pos - 1, a]
-        for k in range(n_pos - 2, -1, -1):
-            acc = acc * d + position[i, k, a]
-        means[i, a] = acc
-    norm = np.float32(0.0)
-    for a in range(4):
-        acc = rotation[i, n_rot - 1, a]
-        for k in range(n_rot - 2, -1, -1):
-            acc = acc * d + rotation[i, k, a]
-        quats[i, a] = acc
-        norm += acc * acc
-    norm = math.sqrt(norm)
-    if norm > np.float32(0.0):
-        for a in range(4):
-            quats[i, a] /= norm
-    else:  # a zero quaternion has no rotation: the identity
-        quats[i, 0] = np.float32(1.0)
-    for a in range(3):
-        scales[i, a] = scale[i, a]
-    channels = features.shape[1]
-    first_time = channels - time_channels
-    for c in range(first_time):
-        feats[i, c] = features[i, c]
-    for c in range(first_time, channels):
-        feats[i, c] = d * features[i, c]
+    if i < opacity.shape[0]:
+        opacities[i] = _opacity_at(tau, opacity, t_center, t_scale, i)
+        _gaussian_at(tau, t_center, position, rotation, scale, features, time_channels, i,
+                     means, quats, scales, feats, i)
 
 
 class DeviceSegment:
