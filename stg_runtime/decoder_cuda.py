@@ -29,7 +29,7 @@ from .cuda_launch import launch
 from .cuda_math import dmax, dmin
 from .decoder import Decoder
 from .projection import camera_params
-from .sh import C0 as SH_C0, C1 as SH_C1, C2 as SH_C2, C3 as SH_C3, degree_of
+from .sh import degree_of, sh_colour_at
 from .splat_cuda import device_empty, simulated
 
 CUDA_PROVIDER = "CUDAExecutionProvider"
@@ -130,33 +130,15 @@ def lite_colour(features_d, out=None):
     return rgb
 
 
+_sh_colour_at = cuda.jit(device=True, inline=True)(sh_colour_at)
+
+
 @cuda.jit
 def _sh(coeffs, means, cam, out):
-    """One thread per Gaussian: stg_runtime.sh's colour, max(sum_k Y_k(dir) c_k + 0.5, 0), in float64."""
+    """One thread per Gaussian: stg_runtime.sh.sh_colour_at from the camera centre cam[16:19]."""
     i = cuda.grid(1)
-    if i >= coeffs.shape[0]:
-        return
-    dx = np.float64(means[i, 0]) - cam[16]
-    dy = np.float64(means[i, 1]) - cam[17]
-    dz = np.float64(means[i, 2]) - cam[18]
-    norm = math.sqrt(dx * dx + dy * dy + dz * dz)
-    if norm > 0.0:
-        dx, dy, dz = dx / norm, dy / norm, dz / norm
-    x, y, z = dx, dy, dz
-    xx, yy, zz = x * x, y * y, z * z
-    b = cuda.local.array(16, np.float64)
-    b[0] = SH_C0
-    b[1], b[2], b[3] = -SH_C1 * y, SH_C1 * z, -SH_C1 * x
-    b[4], b[5], b[6] = SH_C2[0] * x * y, SH_C2[1] * y * z, SH_C2[2] * (2.0 * zz - xx - yy)
-    b[7], b[8] = SH_C2[3] * x * z, SH_C2[4] * (xx - yy)
-    b[9], b[10] = SH_C3[0] * y * (3.0 * xx - yy), SH_C3[1] * x * y * z
-    b[11], b[12] = SH_C3[2] * y * (4.0 * zz - xx - yy), SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy)
-    b[13], b[14], b[15] = SH_C3[4] * x * (4.0 * zz - xx - yy), SH_C3[5] * z * (xx - yy), SH_C3[6] * x * (xx - 3.0 * yy)
-    for c in range(3):
-        s = 0.0
-        for k in range(coeffs.shape[1] // 3):
-            s += b[k] * coeffs[i, 3 * k + c]
-        out[i, c] = dmax(s + 0.5, 0.0)
+    if i < coeffs.shape[0]:
+        _sh_colour_at(coeffs, means, cam[16], cam[17], cam[18], i, out)
 
 
 def sh_colours(coeffs_d, means_d, camera: Camera, out=None):
