@@ -50,8 +50,8 @@ from numba import config as _numba_config
 from numba import cuda
 
 from . import sort_cuda
-from .cuda_launch import launch
 from .camera import Camera
+from .cuda_launch import launch
 from .cuda_math import dmin
 from .projection import camera_params, footprint
 from .splat_reference import MAX_ALPHA, MIN_ALPHA, T_STOP
