@@ -190,6 +190,22 @@ def cuda_provider_available() -> bool:
     return not simulated() and CUDA_PROVIDER in ort.get_available_providers()
 
 
+def _preload_cuda_libraries() -> None:
+    """Let onnxruntime-gpu find the CUDA and cuDNN libraries of pip's nvidia-* packages (its extras
+    [cuda,cudnn]), which are not on the loader's path: onnxruntime.preload_dlls (onnxruntime >= 1.21)
+    loads them once. Without them its CUDA provider fails to load and the session runs on the CPU."""
+    import onnxruntime as ort
+    if not _PRELOADED and hasattr(ort, "preload_dlls"):
+        _PRELOADED.append(True)
+        try:
+            ort.preload_dlls()
+        except Exception:  # noqa: BLE001 (no such packages: the libraries may still be on the path)
+            pass
+
+
+_PRELOADED: list = []
+
+
 def run_bound(decoder: Decoder, device_type: str, rows_ptr: int, rows: int, out_ptr: int) -> None:
     """Run `decoder`'s session on buffers it does not own (onnxruntime IOBinding): float32 input
     (rows, channels) at address rows_ptr, float32 output (rows, 3) written at out_ptr; device_type
@@ -209,7 +225,12 @@ class OnnxDeviceDecoder:
 
     def __init__(self, onnx_bytes: bytes, activation: str):
         self.on_device = cuda_provider_available()
-        providers = (CUDA_PROVIDER, "CPUExecutionProvider") if self.on_device else ("CPUExecutionProvider",)
+        if self.on_device:
+            _preload_cuda_libraries()
+        # TF32 off: onnxruntime's CUDA provider multiplies float32 matrices in TF32 by default (errors
+        # near 1e-3, seen on an H100), the CPU decoder in float32.
+        providers = (((CUDA_PROVIDER, {"use_tf32": "0"}), "CPUExecutionProvider") if self.on_device
+                     else ("CPUExecutionProvider",))
         self.decoder = Decoder(onnx_bytes, activation, providers=providers)
         # onnxruntime falls back to the CPU when the CUDA provider cannot load (missing CUDA libraries).
         self.on_device = CUDA_PROVIDER in self.decoder.session.get_providers()
