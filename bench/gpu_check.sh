@@ -5,7 +5,7 @@
 #   bash bench/gpu_check.sh [OUTDIR]      (default: $OUT if set, else out/gpu_check)
 #
 # 1. the GPU tests: tests/test_splat_cuda.py and tests/test_sort_cuda.py run their kernels on the GPU
-#    (not the simulator);
+#    (not the simulator), and tests/test_cuda_launch.py;
 # 2. bench/render.py --device cuda at the paper's N3V test size (200k Gaussians, 1352x1014): FPS of
 #    lite and full models, the steps, both device sorts and decoders; bench/gpu_profile.py: each
 #    kernel's GPU time against the frame's wall-clock time, and the host's cost per call;

@@ -1,14 +1,15 @@
 #!/usr/bin/env python
-"""Where a GPU frame's time goes: the host's cost of each kind of call the splatter makes, and each
-kernel's time on the GPU (CUPTI, through torch's profiler), for splat_cuda.rasterize at the benchmark
-size. Needs a real GPU, CuPy, and torch with CUDA (for its profiler only).
+"""Where a GPU frame's time goes: each kernel's time on the GPU (CUPTI, through torch's profiler) for
+splat_cuda.rasterize with a kept Workspace at the benchmark size, and the host's cost of each kind of
+call a frame can make. Needs a real GPU, CuPy, and torch with CUDA (for its profiler only).
 
     python bench/gpu_profile.py [--gaussians 200000] [--size 1352x1014] [--trace OUTDIR]
 
 Prints, per model (lite: 3 channels, full: 9): the wall-clock ms of a frame, the ms the GPU was busy
 (the union of kernel intervals) and each kernel's mean us and launches per frame; then the host cost
-of a numba launch, a pooled allocation, a synchronisation and a device-to-host scalar read. A frame
-whose GPU-busy time is well under its wall-clock time is bound by the host (launch overhead).
+of a plain numba launch and of a replayed one (stg_runtime.cuda_launch), of allocations, a
+synchronisation, a device-to-host scalar read and some CuPy calls; then the GPU time of CuPy's sorts
+by key width. A frame whose GPU-busy time is well under its wall-clock time is bound by the host.
 """
 from __future__ import annotations
 

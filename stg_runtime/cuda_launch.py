@@ -3,17 +3,19 @@
     launch(kernel, griddim, blockdim, *args)      same as kernel[griddim, blockdim](*args)
 
 A plain numba launch types every argument, picks the compiled overload and converts each array into its
-kernel parameters. On a real GPU that costs about 25 us plus 9 us per array argument (an H200 with
-numba-cuda 0.30), more than most of the splatter's kernels take to run. `launch` does that work once
-per kernel, launch shape and set of arrays (recognised by identity, so callers keep their buffers from
-frame to frame) and scalar types, records the parameters numba passes to cuda.core's launch, and
-afterwards replays that launch directly (about 10 us on the same H200). Scalar arguments are converted
-again only when their values change: with the ctypes types numba gave their parameters when these
-reproduce numba's conversion, else by numba (a tuple argument must keep its element types).
+kernel parameters: 17 to 32 us of Python for a kernel of one array argument, 33 to 68 us for five
+(numba-cuda 0.30, on the host CPUs of an H100 and of two H200 machines), more than most of the
+splatter's kernels take to run. `launch` does that work once per kernel, launch shape and set of
+arrays (recognised by identity, so callers keep their buffers from frame to frame) and scalar types,
+records the parameters numba passes to cuda.core's launch, and afterwards replays that launch directly
+(6 to 15 us on the same machines). Scalar arguments are converted again only when their values change:
+with the ctypes types numba gave their parameters when these reproduce numba's conversion, else by
+numba (a tuple argument must keep its element types).
 
-This relies on numba-cuda's internals (cuda.core launches, the compiled kernel's `_prepare_args`).
-Where they differ (another numba-cuda version, numba's built-in CUDA target, the simulator), or when
-an argument cannot be recorded, `launch` is the plain numba launch.
+This relies on numba-cuda's internals (cuda.core launches, the compiled kernel's `_prepare_args`), and
+recording swaps numba-cuda's launch function for a moment (record from one thread at a time). Where
+the internals differ (another numba-cuda version, numba's built-in CUDA target, the simulator), or
+when an argument cannot be recorded, `launch` is the plain numba launch.
 """
 from __future__ import annotations
 
