@@ -22,6 +22,20 @@ def two_torch_threads():
     torch.set_num_threads(old)
 
 
+@pytest.fixture(scope="session")
+def synthetic_n3v(tmp_path_factory):
+    """write(name, **scene) -> the path of a new temporary folder holding stg_train.synthetic's scene
+    (seed 0, lasting scene's num_frames / fps seconds) in the N3V layout; scene: write_n3v's keyword
+    arguments (num_cameras, num_frames, fps, width, height)."""
+    from stg_train.synthetic import SyntheticScene, write_n3v
+
+    def write(name: str, **scene) -> Path:
+        path = tmp_path_factory.mktemp(name)
+        write_n3v(path, SyntheticScene(seed=0, duration=scene["num_frames"] / scene["fps"]), **scene)
+        return path
+    return write
+
+
 @pytest.fixture(autouse=True)
 def _fast_simulator_threads():
     """Under numba's CUDA simulator, whose block manager polls its threads, a GIL switch interval shorter

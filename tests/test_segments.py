@@ -20,7 +20,6 @@ from stg_train.data import load_n3v  # noqa: E402
 from stg_train.export import GoldenDiff, trainer_render  # noqa: E402
 from stg_train.params import STGParams  # noqa: E402
 from stg_train.segments import parse_segment_list, plan_segments  # noqa: E402
-from stg_train.synthetic import SyntheticScene, write_n3v  # noqa: E402
 from stg_train.trainer import Trainer  # noqa: E402
 
 # 8 frames over 2 s: the sphere moves and the box turns visibly between the two 4-frame segments.
@@ -33,10 +32,8 @@ pytestmark = pytest.mark.usefixtures("two_torch_threads")
 
 
 @pytest.fixture(scope="module")
-def scene_dir(tmp_path_factory):
-    path = tmp_path_factory.mktemp("seg_scene")
-    write_n3v(path, SyntheticScene(seed=0, duration=SCENE["num_frames"] / SCENE["fps"]), **SCENE)
-    return path
+def scene_dir(synthetic_n3v):
+    return synthetic_n3v("seg_scene", **SCENE)
 
 
 @pytest.fixture(scope="module")

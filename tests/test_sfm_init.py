@@ -7,17 +7,14 @@ import stg_train  # noqa: F401  (sets the OpenMP policy before torch is imported
 from stg_train.data import DataError, Dataset, load_n3v
 from stg_train.data import sfm
 from stg_train.params import sample_view_volume
-from stg_train.synthetic import SyntheticScene, write_n3v
+from stg_train.synthetic import SyntheticScene
 
 FPS, FRAMES = 30.0, 2
 
 
 @pytest.fixture(scope="module")
-def scene_dir(tmp_path_factory):
-    path = tmp_path_factory.mktemp("sfm_scene")
-    write_n3v(path, SyntheticScene(seed=0, duration=FRAMES / FPS), num_cameras=8, num_frames=FRAMES, fps=FPS,
-              width=160, height=120)
-    return path
+def scene_dir(synthetic_n3v):
+    return synthetic_n3v("sfm_scene", num_cameras=8, num_frames=FRAMES, fps=FPS, width=160, height=120)
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,6 @@ from stg_runtime.player import Player  # noqa: E402
 from stg_train.cli import eval_main, train_main  # noqa: E402
 from stg_train.data import load_n3v  # noqa: E402
 from stg_train.export import GoldenDiff, export_trainer, trainer_render  # noqa: E402
-from stg_train.synthetic import SyntheticScene, write_n3v  # noqa: E402
 from stg_train.trainer import Trainer, TrainConfig  # noqa: E402
 
 # A tiny scene whose dynamics matter: 8 frames over 2 s (4 fps), so the sphere travels across the room,
@@ -28,10 +27,8 @@ pytestmark = pytest.mark.usefixtures("two_torch_threads")
 
 
 @pytest.fixture(scope="module")
-def scene_dir(tmp_path_factory):
-    path = tmp_path_factory.mktemp("tiny_scene")
-    write_n3v(path, SyntheticScene(seed=0, duration=SCENE["num_frames"] / SCENE["fps"]), **SCENE)
-    return path
+def scene_dir(synthetic_n3v):
+    return synthetic_n3v("tiny_scene", **SCENE)
 
 
 @pytest.fixture(scope="module")
