@@ -1,4 +1,5 @@
-"""Device prefix sum and stable radix sort (numba.cuda), for the splatter when CuPy is not installed.
+"""Device stable radix sort (numba.cuda), for the splatter when CuPy is not installed, and the prefix
+sum it is built on.
 
     exclusive_scan(counts_d) -> (offsets_d, total)
         counts_d: (n,) int32 or int64 device array, n >= 0; offsets_d: a new (n,) int64 device array,
@@ -9,9 +10,11 @@
         an optional (n,) device array (the splatter's int32 ids) that moves with its key. Returns new
         device arrays; the inputs are not modified. Stable: equal keys keep their input order.
 
-Host arrays are accepted too (copied to the device). stg_runtime.splat_cuda sorts and scans with
-cupy.argsort / cupy.sort / cupy.cumsum when CuPy is there; without it, these replace a bitonic sort
-(O(n log^2 n) work, one launch per step) and a Hillis-Steele scan over the whole array.
+Host arrays are accepted too (copied to the device). stg_runtime.splat_cuda sorts its depth keys and
+tile keys (keys only) with CuPy's sort when CuPy is there, else with radix_sort; it needs no scan of
+its own (exclusive_scan is the radix sort's scan, exposed so that it is tested on its own). These
+replace a bitonic sort (O(n log^2 n) work, one launch per step) and a Hillis-Steele scan over the
+whole array.
 
 Blocks: BLOCK = 256 threads, ITEMS = 4 consecutive elements per thread, so a block covers a tile of
 TILE = 1024 elements. A block scan (used by both) is a Hillis-Steele inclusive scan of the threads'
