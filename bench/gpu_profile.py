@@ -1,13 +1,13 @@
 #!/usr/bin/env python
 """Where a GPU frame's time goes: each kernel's time on the GPU (CUPTI, through torch's profiler) for
-splat_cuda.rasterize with a kept Workspace at the benchmark size, and the host's cost of each kind of
-call a frame can make. Needs a real GPU, CuPy, and torch with CUDA (for its profiler only).
+stg_runtime.cuda.splat.rasterize with a kept Workspace at the benchmark size, and the host's cost of
+each kind of call a frame can make. Needs a real GPU, CuPy, and torch with CUDA (for its profiler only).
 
     python bench/gpu_profile.py [--gaussians 200000] [--size 1352x1014] [--trace OUTDIR]
 
 Prints, per model (lite: 3 channels, full: 9): the wall-clock ms of a frame, the ms the GPU was busy
 (the union of kernel intervals) and each kernel's mean us and launches per frame; then the host cost
-of a plain numba launch and of a replayed one (stg_runtime.cuda_launch), of allocations, a
+of a plain numba launch and of a replayed one (stg_runtime.cuda.launch), of allocations, a
 synchronisation, a device-to-host scalar read and some CuPy calls; then the GPU time of CuPy's sorts
 by key width. A frame whose GPU-busy time is well under its wall-clock time is bound by the host.
 """
@@ -66,11 +66,13 @@ def main() -> None:
     import cupy
     from numba import cuda
 
-    from stg_runtime import decoder_cuda, splat_cuda
     from stg_runtime.camera import orbit
+    from stg_runtime.cuda import decoder as decoder_cuda
+    from stg_runtime.cuda import memory
+    from stg_runtime.cuda import splat as splat_cuda
+    from stg_runtime.cuda.timeeval import DeviceSegment
     from stg_runtime.demo import random_model
     from stg_runtime.projection import camera_params
-    from stg_runtime.timeeval_cuda import DeviceSegment
 
     torch.zeros(1, device="cuda")
     w, h = (int(v) for v in args.size.lower().split("x"))
@@ -81,7 +83,7 @@ def main() -> None:
         model = random_model(args.gaussians, kind, width=w, height=h)
         cam = model.cameras[0]
         g = DeviceSegment(model.segments[0]).evaluate(0.5)
-        ws = splat_cuda.Workspace()
+        ws = memory.Workspace()
         for _ in range(5):
             splat_cuda.rasterize(*g, cam, out="device", workspace=ws)
         cuda.synchronize()
@@ -108,7 +110,7 @@ def main() -> None:
         print()
 
     # Host costs of the calls a frame makes.
-    from stg_runtime.cuda_launch import launch
+    from stg_runtime.cuda.launch import launch
     keys = cuda.device_array(1024, np.int32)
     order = cuda.device_array((1024, 2), np.int32)
     counters = cuda.to_device(np.zeros(3, np.int64))  # no entries: the kernel does nothing
@@ -119,13 +121,13 @@ def main() -> None:
     empty = cuda.device_array((0, 3), np.float32)  # _sh over no Gaussians: only the launch
     costs = {
         "numba launch, 5 array args (_ranges)": lambda: splat_cuda._ranges[4, 256](*ranges_args),
-        "cuda_launch.launch of _ranges (replayed)": lambda: launch(splat_cuda._ranges, 4, 256, *ranges_args),
+        "launch of _ranges (replayed)": lambda: launch(splat_cuda._ranges, 4, 256, *ranges_args),
         "numba launch, 1 array arg (_clear)": lambda: splat_cuda._clear[1, 32](counters),
-        "cuda_launch.launch of _clear (replayed)": lambda: launch(splat_cuda._clear, 1, 32, counters),
-        "cuda_launch.launch, a new 19-float camera every call": (
+        "launch of _clear (replayed)": lambda: launch(splat_cuda._clear, 1, 32, counters),
+        "launch, a new 19-float camera every call": (
             lambda: launch(decoder_cuda._sh, 1, 32, empty, empty, cams.reverse() or cams[0], empty)),
         "cupy.empty": lambda: cupy.empty((200000, 7), np.float32),
-        "splat_cuda.device_empty (cupy.empty + numba view)": lambda: splat_cuda.device_empty((200000, 7), np.float32),
+        "memory.device_empty (cupy.empty + numba view)": lambda: memory.device_empty((200000, 7), np.float32),
         "numba cuda.device_array": lambda: cuda.device_array((200000, 7), np.float32),
         "cuda.synchronize (idle)": cuda.synchronize,
         "int(cupy_array[-1])": lambda a=cupy.arange(10): int(a[-1]),

@@ -5,7 +5,7 @@ breakdown (time evaluation, splatting, decoder), beside the float64 numpy refere
     python bench/render.py [--gaussians 100000] [--size 640x360] [--repeats 20] [--threads N]
     python bench/render.py --device cuda [--gaussians 200000] [--size 1352x1014] [--no-gsplat]
 
---device cuda times the numba.cuda path (stg_runtime.splat_cuda: Player(device="cuda") with
+--device cuda times the numba.cuda path (stg_runtime.cuda: Player(device="cuda") with
 render(out="device"), i.e. without the copy to the host; from one camera, and from a new camera every
 frame along an orbit) and its steps (the splat with either device sort and a kept Workspace, the fused
 and the onnxruntime decoder), and gsplat's rasterization of the same Gaussians where gsplat and torch
@@ -31,7 +31,7 @@ import numpy as np
 from stg_runtime import Player
 from stg_runtime.demo import random_model
 from stg_runtime.splat_cpu import rasterize
-from stg_runtime.splat_reference import project_reference, rasterize_reference
+from stg_runtime.spec import project_oracle, rasterize_oracle
 from stg_runtime.timeeval import evaluate
 
 
@@ -48,16 +48,17 @@ def median_seconds(fn, repeats: int) -> float:
 
 def cuda_main(args) -> None:
     """The GPU benchmark (--device cuda): FPS of Player(device="cuda"), breakdown, gsplat beside it."""
-    from stg_runtime import splat_cuda
-    if not splat_cuda.gpu_available():
+    from stg_runtime.cuda import device, memory
+    from stg_runtime.cuda import splat as splat_cuda
+    if not device.gpu_available():
         raise SystemExit("bench/render.py --device cuda: numba sees no CUDA GPU here"
                          + (" (NUMBA_ENABLE_CUDASIM=1 is set: the simulator cannot be timed)"
-                            if splat_cuda.simulated() else "") + "; run it on a machine with an NVIDIA GPU")
+                            if device.simulated() else "") + "; run it on a machine with an NVIDIA GPU")
     from numba import cuda
 
     from stg_runtime.camera import orbit
-    from stg_runtime.decoder_cuda import FusedDecoder, OnnxDeviceDecoder, cuda_provider_available
-    from stg_runtime.timeeval_cuda import DeviceSegment
+    from stg_runtime.cuda.decoder import FusedDecoder, OnnxDeviceDecoder, cuda_provider_available
+    from stg_runtime.cuda.timeeval import DeviceSegment
 
     def gpu_seconds(fn, repeats):
         return median_seconds(lambda: (fn(), cuda.synchronize()), repeats)
@@ -65,10 +66,10 @@ def cuda_main(args) -> None:
     w, h = (int(v) for v in args.size.lower().split("x"))
     name = cuda.get_current_device().name
     print(f"GPU: {name.decode() if isinstance(name, bytes) else name}; "
-          f"numba {numba.__version__}; device sort: {'CuPy' if splat_cuda._cupy() is not None else 'numba radix'}")
+          f"numba {numba.__version__}; device sort: {'CuPy' if device.cupy() is not None else 'numba radix'}")
     print(f"{args.gaussians} Gaussians at {w}x{h}, median of {args.repeats} renders (output left on the GPU)\n")
     print("ms/frame: Player.render from one camera; moving: from a new camera every frame; splat ms: with "
-          "the sort above; numba sort: the same splat with stg_runtime.sort_cuda's radix sort; decode: fused "
+          "the sort above; numba sort: the same splat with stg_runtime.cuda.sort's radix sort; decode: fused "
           "kernel; onnx: onnxruntime " + ("CUDA provider" if cuda_provider_available() else
                                           "CPU provider, through the host") + "\n")
     print(f"{'model':<8}{'FPS':>8}{'ms/frame':>10}{'moving':>8}{'eval ms':>9}{'splat ms':>10}{'numba sort':>12}"
@@ -98,7 +99,7 @@ def cuda_main(args) -> None:
         dseg = DeviceSegment(seg)
         t_eval = gpu_seconds(lambda: dseg.evaluate(0.5), args.repeats)
         g = dseg.evaluate(0.5)
-        ws = {sort: splat_cuda.Workspace() for sort in ("auto", "numba")}
+        ws = {sort: memory.Workspace() for sort in ("auto", "numba")}
         t_splat = gpu_seconds(lambda: splat_cuda.rasterize(*g, cam, out="device", workspace=ws["auto"]), args.repeats)
         t_numba_sort = gpu_seconds(lambda: splat_cuda.rasterize(*g, cam, out="device", sort="numba",
                                                                 workspace=ws["numba"]), args.repeats)
@@ -110,7 +111,7 @@ def cuda_main(args) -> None:
         if kind == "full":
             feats = splat_cuda.rasterize(*g, cam, out="device", workspace=ws["auto"])[0]
             fused = FusedDecoder.from_onnx(seg.decoder, seg.activation)
-            rgb = splat_cuda.device_empty((h, w, 3), np.float32)
+            rgb = memory.device_empty((h, w, 3), np.float32)
             t_dec = gpu_seconds(lambda: fused(feats, cam, out=rgb), args.repeats)
             onnx = OnnxDeviceDecoder(seg.decoder, seg.activation)
             t_onnx = gpu_seconds(lambda: onnx(feats, cam), args.repeats)
@@ -151,7 +152,7 @@ def _gsplat_seconds(arrays, camera, repeats) -> float | None:
 
 def layers(g, camera) -> float:
     """Mean number of 1-sigma ellipses (2D covariance with blur) over a pixel."""
-    p = project_reference(g.means, g.quats, g.scales, camera)
+    p = project_oracle(g.means, g.quats, g.scales, camera)
     a, b, c = p.cov2d[p.visible].T
     return float(np.sum(np.pi * np.sqrt(a * c - b * b)) / (camera.width * camera.height))
 
@@ -205,7 +206,7 @@ def main() -> None:
     rw, rh = (int(v) for v in args.reference_size.lower().split("x"))
     model = random_model(args.reference_gaussians, "lite", width=rw, height=rh, seed=1)
     g, cam = evaluate(model.segments[0], 0.5), model.cameras[0]
-    t_ref = median_seconds(lambda: rasterize_reference(g.means, g.quats, g.scales, g.opacities, g.features, cam), 1)
+    t_ref = median_seconds(lambda: rasterize_oracle(g.means, g.quats, g.scales, g.opacities, g.features, cam), 1)
     t_fast = median_seconds(lambda: rasterize(g.means, g.quats, g.scales, g.opacities, g.features, cam), 5)
     print(f"\nnumpy reference, {args.reference_gaussians} Gaussians at {rw}x{rh}: {1000 * t_ref:.0f} ms/frame "
           f"(numba splatter on the same: {1000 * t_fast:.2f} ms, {t_ref / t_fast:.0f}x faster)")

@@ -1,12 +1,18 @@
-"""Pinhole cameras in the OpenCV convention (x right, y down, z forward), world-to-camera poses.
+"""Pinhole cameras in the OpenCV convention (x right, y down, z forward), world-to-camera poses, and
+camera paths (an orbit around a rig; camera-path JSON files, a list of camera objects).
 
 Pixel (column u, row v) has its centre at (u + 0.5, v + 0.5); see formats/stg-v1.md, section 1.
 """
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
 
 import numpy as np
+
+from .atomic import write_atomic
 
 
 @dataclass(frozen=True, eq=False)
@@ -178,3 +184,18 @@ def orbit(cameras, num_frames: int, target=None, radius=None, width=None, height
         cam = Camera.look_at(eye, target, -down, fov, base.width, base.height, name=f"orbit{i:04d}")
         path.append(cam)
     return path
+
+
+def load_camera_path(path) -> list[Camera]:
+    """Cameras from a JSON file holding a list of camera objects (formats/stg-v1.md, section 4);
+    ValueError naming the file when it is not one."""
+    try:
+        data = json.loads(Path(path).read_text())
+        return [Camera.from_dict(d) for d in data]
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ValueError(f"{path}: not a readable camera path ({e})") from None
+
+
+def save_camera_path(path, cameras: Sequence[Camera]) -> None:
+    """Write `cameras` as a camera-path JSON file (see load_camera_path)."""
+    write_atomic(path, json.dumps([c.to_dict() for c in cameras], indent=1))

@@ -6,9 +6,9 @@ import sys
 
 import numpy as np
 
-from .camera import orbit
+from .camera import load_camera_path, orbit
 from .format import FormatError
-from .player import Player, load_camera_path
+from .player import Player
 
 EPILOG = """examples:
   stg-render --demo --out demo.mp4                  the built-in demo scene, orbiting camera

@@ -1,4 +1,6 @@
-"""The colour decoder: splatted features (H, W, C) -> rgb (H, W, 3) (formats/stg-v1.md, section 2)."""
+"""Colour on the CPU (formats/stg-v1.md, section 2): the full model's ONNX decoder run by onnxruntime,
+and the lite colour. Splatted features (H, W, C) -> rgb (H, W, 3). The GPU's are in stg_runtime.cuda.decoder.
+"""
 from __future__ import annotations
 
 import numpy as np
@@ -15,7 +17,7 @@ def activate(x: np.ndarray, activation: str) -> np.ndarray:
     return np.clip(x, 0.0, 1.0, out=x)
 
 
-class Decoder:
+class OnnxDecoder:
     """Runs a segment's ONNX decoder with onnxruntime (on the CPU unless `providers` says otherwise).
 
     onnx_bytes: a graph with one float32 input (P, C + 3) and one float32 output (P, 3), where C is the

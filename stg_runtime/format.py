@@ -10,13 +10,13 @@ import hashlib
 import json
 import math
 import os
-import secrets
 import struct
 import zlib
 
 import numpy as np
 
 from . import onnx_mlp
+from .atomic import write_atomic
 from .camera import Camera
 from .model import ACTIVATIONS, ATTRIBUTES, FEATURE_CHANNELS, KINDS, Model, Segment, allowed_channels, attribute_shape
 
@@ -191,24 +191,6 @@ def save(model: Model, path, encodings: dict[str, str] | None = None, codec: str
     on any error nothing is left at a new path.
     """
     write_atomic(path, dumps(model, encodings, codec, level, provenance))
-
-
-def write_atomic(path, payload: bytes) -> None:
-    """Write `payload` to `path` through a new temporary file in the same directory (fsync, then rename):
-    readers see the old file or the whole new one, and a failure leaves no file behind."""
-    path = os.fspath(path)
-    tmp = f"{path}.{secrets.token_hex(4)}.tmp"
-    try:
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
-        with open(fd, "wb") as f:
-            f.write(payload)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 # -- reading ------------------------------------------------------------------------------------

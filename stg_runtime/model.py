@@ -18,6 +18,21 @@ ATTRIBUTES = ("opacity", "t_center", "t_scale", "position", "rotation", "scale",
 FEATURE_CHANNELS = {"lite": 3, "full": 9}
 #: "sh" models: spherical-harmonics degree d (0..3) -> feature channels 3 (d+1)^2 (stg_runtime/sh.py).
 SH_CHANNELS = {0: 3, 1: 12, 2: 27, 3: 48}
+#: Trailing feature channels of a full model that are multiplied by tau - t_center (its time features).
+TIME_CHANNELS = 3
+
+
+def sh_degree_of(channels: int) -> int:
+    """The SH degree of a feature channel count (3, 12, 27, 48 -> 0, 1, 2, 3); ValueError otherwise."""
+    degrees = {c: d for d, c in SH_CHANNELS.items()}
+    if channels not in degrees:
+        raise ValueError(f"{channels} feature channels is not an SH layout (expected one of {sorted(degrees)})")
+    return degrees[channels]
+
+
+def time_channels(segment: "Segment") -> int:
+    """How many trailing feature channels are multiplied by (tau - t_center): 3 for full, 0 for lite and sh."""
+    return TIME_CHANNELS if segment.channels == FEATURE_CHANNELS["full"] else 0
 
 
 def allowed_channels(kind: str) -> tuple[int, ...]:
@@ -138,8 +153,7 @@ class Model:
         """The spherical-harmonics degree of an "sh" model (its segments' highest), None for other kinds."""
         if self.kind != "sh":
             return None
-        inverse = {c: d for d, c in SH_CHANNELS.items()}
-        return max(inverse[s.channels] for s in self.segments)
+        return max(sh_degree_of(s.channels) for s in self.segments)
 
     @property
     def duration(self) -> float:

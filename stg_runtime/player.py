@@ -1,15 +1,14 @@
 """`Player`: open a `.stg` model and render it from any camera at any time."""
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import NamedTuple, Sequence
 
 import numpy as np
 
 from . import format as stg_format
-from .camera import Camera
-from .decoder import Decoder, lite_colour
+from .camera import Camera, load_camera_path
+from .decoder import OnnxDecoder, lite_colour
 from .model import Model, Segment
 from .progress import Progress
 from .sh import sh_colours
@@ -38,28 +37,28 @@ def _resolve_device(device: str) -> str:
         raise ValueError(f"device must be one of {DEVICES}, got {device!r}")
     if device == "cpu":
         return "cpu"
-    from . import splat_cuda  # numba.cuda is imported only when a GPU is asked about
+    from .cuda import device as cuda_device  # numba.cuda is imported only when a GPU is asked about
     if device == "cuda":
-        splat_cuda.require()
+        cuda_device.require()
         return "cuda"
-    return "cuda" if splat_cuda.gpu_available() else "cpu"
+    return "cuda" if cuda_device.gpu_available() else "cpu"
 
 
 class Player:
     """Plays a Spacetime Gaussian model.
 
     source: path of a `.stg` file, or a `Model`. device: "cpu", "cuda" (numba.cuda kernels, see
-    stg_runtime.splat_cuda; RuntimeError when numba sees no GPU) or "auto" ("cuda" when numba sees a GPU,
+    stg_runtime.cuda; RuntimeError when numba sees no GPU) or "auto" ("cuda" when numba sees a GPU,
     else "cpu"). Times are in seconds of the video (frame k is shown at k / fps).
     """
 
     def __init__(self, source: str | Path | Model, device: str = "auto"):
         self.device = _resolve_device(device)
         self.model = source if isinstance(source, Model) else stg_format.load(source)
-        self._decoders: dict[int, Decoder] = {}
+        self._decoders: dict[int, OnnxDecoder] = {}
         self._device_decoders: dict[int, object] = {}  # device "cuda": per segment, Fused/OnnxDeviceDecoder
         self._device_segments: dict[int, object] = {}  # device "cuda": per segment, its DeviceSegment
-        self._workspace = None  # device "cuda": splat_cuda.Workspace, the buffers kept between frames
+        self._workspace = None  # device "cuda": cuda.memory.Workspace, the buffers kept between frames
 
     # -- what the model covers -----------------------------------------------------------------
     @property
@@ -131,15 +130,17 @@ class Player:
     def _render_cuda(self, segment: Segment, tau: float, camera: Camera, out: str) -> Rendered:
         """Time evaluation, splatting and colour with the numba.cuda kernels, on segments uploaded once.
         The colour of full models is the fused decoder, except for decoder graphs other than
-        12 -> 6 -> 3 MatMul/Relu (decoder_cuda.OnnxDeviceDecoder: onnxruntime). "sh" models get their
-        per-Gaussian colours for this view on the device (decoder_cuda.sh_colours) before splatting."""
-        from . import decoder_cuda, splat_cuda
-        from .timeeval_cuda import DeviceSegment
+        12 -> 6 -> 3 MatMul/Relu (cuda.decoder.OnnxDeviceDecoder: onnxruntime). "sh" models get their
+        per-Gaussian colours for this view on the device (cuda.decoder.sh_colours) before splatting."""
+        from .cuda import decoder as decoder_cuda
+        from .cuda import splat as splat_cuda
+        from .cuda.memory import Workspace
+        from .cuda.timeeval import DeviceSegment
         key = id(segment)
         if key not in self._device_segments:
             self._device_segments[key] = DeviceSegment(segment)
         if self._workspace is None:
-            self._workspace = splat_cuda.Workspace()
+            self._workspace = Workspace()
         ws = self._workspace
         gaussians = self._device_segments[key].evaluate(tau)
         if self.model.kind == "sh":
@@ -160,10 +161,10 @@ class Player:
         host = lambda a: a if isinstance(a, np.ndarray) else a.copy_to_host()  # noqa: E731
         return Rendered(host(rgb), host(features), host(alpha), host(depth))
 
-    def _decoder(self, segment: Segment) -> Decoder:
+    def _decoder(self, segment: Segment) -> OnnxDecoder:
         key = id(segment)
         if key not in self._decoders:
-            self._decoders[key] = Decoder(segment.decoder, segment.activation)
+            self._decoders[key] = OnnxDecoder(segment.decoder, segment.activation)
         return self._decoders[key]
 
     def render_video(self, path, cameras: Camera | Sequence[Camera] | str | Path, times=None,
@@ -197,16 +198,3 @@ class Player:
         finally:
             writer.close(ok)
         return writer.count
-
-
-def load_camera_path(path) -> list[Camera]:
-    """Cameras from a JSON file holding a list of camera objects (formats/stg-v1.md, section 4)."""
-    try:
-        data = json.loads(Path(path).read_text())
-        return [Camera.from_dict(d) for d in data]
-    except (OSError, ValueError, KeyError, TypeError) as e:
-        raise ValueError(f"{path}: not a readable camera path ({e})") from None
-
-
-def save_camera_path(path, cameras: Sequence[Camera]) -> None:
-    Path(path).write_text(json.dumps([c.to_dict() for c in cameras], indent=1))

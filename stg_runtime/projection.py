@@ -4,9 +4,9 @@
     footprint(cam, width, height, means, quats, scales, opacities, i)
         -> (z, u, v, conic_a, conic_b, conic_c, thr, u0, u1, v0, v1)
 
-footprint is plain Python that numba compiles for each target: splat_cpu with numba.njit, splat_cuda
-with cuda.jit(device=True). So it calls no helper functions, and avoids the two-argument builtins
-min/max, which numba 0.66 to 0.68 cannot compile for CUDA. For Gaussian i of the arrays (float32:
+footprint is plain Python that numba compiles for each target: splat_cpu with numba.njit,
+stg_runtime.cuda.splat with cuda.jit(device=True). So it calls no helper functions and no two-argument
+min/max (docs/gpu.md says why). For Gaussian i of the arrays (float32:
 means (M, 3) world units, quats (M, 4) wxyz, normalised here, zero being the identity, scales (M, 3),
 opacities (M,)), in float64, it returns:
 
@@ -30,7 +30,7 @@ import math
 
 import numpy as np
 
-from .splat_reference import BLUR, MIN_ALPHA, NEAR
+from .spec import BLUR, JACOBIAN_MARGIN, MIN_ALPHA, NEAR
 
 #: Length of camera_params' tuple: R row-major (0..8), t (9..11), fx, fy, cx, cy (12..15), the camera
 #: centre (16..18), and the range that x/z and y/z are clamped to in the EWA Jacobian (19..22).
@@ -41,7 +41,7 @@ def camera_params(camera) -> tuple:
     """The camera as the kernels take it (one tuple argument of CAMERA_PARAMS Python floats)."""
     w2c = camera.world_to_camera
     fx, fy, cx, cy, W, H = camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height
-    tan_x, tan_y = 0.3 * W / (2.0 * fx), 0.3 * H / (2.0 * fy)  # 1.3 x tan(half field of view), centred
+    tan_x, tan_y = JACOBIAN_MARGIN * W / (2.0 * fx), JACOBIAN_MARGIN * H / (2.0 * fy)  # 1.3 x tan(half fov), centred
     return (*w2c[:3, :3].ravel().tolist(), *w2c[:3, 3].tolist(), fx, fy, cx, cy, *camera.center.tolist(),
             -(cx / fx + tan_x), (W - cx) / fx + tan_x, -(cy / fy + tan_y), (H - cy) / fy + tan_y)
 

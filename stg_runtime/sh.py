@@ -12,48 +12,18 @@ import math
 import numba
 import numpy as np
 
-from .model import SH_CHANNELS
-
-#: The real SH constants of 3D Gaussian Splatting (degree 0, 1, 2, 3).
-C0 = 0.28209479177387814
-C1 = 0.4886025119029199
-C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
-C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
-      -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
-#: SH degree -> feature channels 3 (d + 1)^2.
-CHANNELS = SH_CHANNELS
-DEGREES = {c: d for d, c in CHANNELS.items()}
-
-
-def degree_of(channels: int) -> int:
-    """The SH degree of a feature channel count (3, 12, 27, 48 -> 0, 1, 2, 3); ValueError otherwise."""
-    if channels not in DEGREES:
-        raise ValueError(f"{channels} feature channels is not an SH layout (expected one of {sorted(DEGREES)})")
-    return DEGREES[channels]
-
-
-def basis(dirs: np.ndarray, degree: int) -> np.ndarray:
-    """(M, 3) unit directions -> (M, (degree+1)^2) float64 basis values Y_k(dir) (3DGS's constants and signs)."""
-    x, y, z = np.asarray(dirs, dtype=np.float64).T
-    out = [np.full_like(x, C0)]
-    if degree > 0:
-        out += [-C1 * y, C1 * z, -C1 * x]
-    if degree > 1:
-        xx, yy, zz = x * x, y * y, z * z
-        out += [C2[0] * x * y, C2[1] * y * z, C2[2] * (2 * zz - xx - yy), C2[3] * x * z, C2[4] * (xx - yy)]
-    if degree > 2:
-        out += [C3[0] * y * (3 * xx - yy), C3[1] * x * y * z, C3[2] * y * (4 * zz - xx - yy),
-                C3[3] * z * (2 * zz - 3 * xx - 3 * yy), C3[4] * x * (4 * zz - xx - yy), C3[5] * z * (xx - yy),
-                C3[6] * x * (xx - 3 * yy)]
-    return np.stack(out, axis=1)
+from .model import sh_degree_of
+from .spec import SH_C0 as C0
+from .spec import SH_C1 as C1
+from .spec import SH_C2 as C2
+from .spec import SH_C3 as C3
 
 
 def sh_colour_at(coeffs, means, cx, cy, cz, i, out):
     """out[i] = Gaussian i's rgb seen from the camera centre (cx, cy, cz) (see sh_colours), in float64.
 
-    Plain Python that numba compiles for each target: _sh_colours here, and stg_runtime.decoder_cuda's
-    kernel (so it calls no helper functions, nor the builtin max, which numba 0.66 to 0.68 cannot
-    compile for CUDA)."""
+    Plain Python that numba compiles for each target: _sh_colours here, and stg_runtime.cuda.decoder's
+    kernel (so it calls no helper functions, nor the two-argument builtin max: see docs/gpu.md)."""
     k_count = coeffs.shape[1] // 3
     dx = np.float64(means[i, 0]) - cx
     dy = np.float64(means[i, 1]) - cy
@@ -120,20 +90,9 @@ def sh_colours(coeffs: np.ndarray, means: np.ndarray, camera_center) -> np.ndarr
     """
     coeffs = np.ascontiguousarray(coeffs, dtype=np.float32)
     means = np.ascontiguousarray(means, dtype=np.float32)
-    degree_of(coeffs.shape[1])
+    sh_degree_of(coeffs.shape[1])
     if means.shape != (coeffs.shape[0], 3):
         raise ValueError(f"means must be ({coeffs.shape[0]}, 3), got {means.shape}")
     out = np.empty((coeffs.shape[0], 3), np.float32)
     _sh_colours(coeffs, means, np.asarray(camera_center, dtype=np.float64).reshape(3), out)
     return out
-
-
-def sh_colours_reference(coeffs, means, camera_center) -> np.ndarray:
-    """Float64 numpy version of sh_colours (for tests and checks): (M, 3) float64."""
-    coeffs = np.asarray(coeffs, dtype=np.float64)
-    k = coeffs.shape[1] // 3
-    d = np.asarray(means, dtype=np.float64) - np.asarray(camera_center, dtype=np.float64).reshape(1, 3)
-    norm = np.linalg.norm(d, axis=1, keepdims=True)
-    d = d / np.where(norm > 0, norm, 1.0)
-    values = np.einsum("mk,mkc->mc", basis(d, degree_of(coeffs.shape[1])), coeffs.reshape(-1, k, 3))
-    return np.maximum(values + 0.5, 0.0)

@@ -3,15 +3,15 @@
     rasterize(means, quats, scales, opacities, features, camera, *, tile_size=16)
         -> features (H, W, C), alpha (H, W), depth (H, W), all float32
 
-Same semantics as stg_runtime.splat_reference.rasterize_reference (the float64 transcription of the
-spec); the results agree with it to float32 rounding. The pipeline, one numba kernel per step (two
-parallel regions per frame: a region costs milliseconds when the other core is busy):
+Same semantics as stg_runtime.spec.rasterize_oracle (the float64 transcription of the spec); the
+results agree with it to float32 rounding. The pipeline, one numba kernel per step (two parallel
+regions per frame: a region costs milliseconds when the other core is busy):
 
 1. _project (parallel over Gaussians): stg_runtime.projection.footprint (shared with the GPU
-   splatter), in float64: camera-space depth, the EWA 2D covariance's conic, and the rectangle of
-   pixels to visit: the pixel centres within the 3-sigma radius (the spec's footprint) that can also
-   reach alpha >= 1/255 (the bounding box of the ellipse power <= log(255 opacity), with a margin),
-   clipped to the image. Culled Gaussians (near plane, determinant, opacity floor, nothing to visit)
+   splatter, stg_runtime.cuda.splat), in float64: camera-space depth, the EWA 2D covariance's conic,
+   and the rectangle of pixels to visit: the pixel centres within the 3-sigma radius (the spec's
+   footprint) that can also reach alpha >= 1/255 (the bounding box of the ellipse power <=
+   log(255 opacity), with a margin), clipped to the image. Culled Gaussians (near plane, determinant, opacity floor, nothing to visit)
    get no tiles. Each kept Gaussian gets a 64-byte record (see _PACKED): all the compositor reads
    about it.
 2. _sort_by_depth: the kept Gaussians in (depth, index) order (radix sort; exactly the float64 order).
@@ -40,7 +40,7 @@ from numba.extending import intrinsic
 
 from .camera import Camera
 from .projection import camera_params, footprint
-from .splat_reference import MAX_ALPHA, MIN_ALPHA, T_STOP
+from .spec import MAX_ALPHA, MIN_ALPHA32, T_STOP32
 
 #: The per-Gaussian record the compositor reads, float32, one 64-byte cache line: mean x, mean y
 #: (pixels), conic A/2, B, C/2, opacity, depth z, thr = log(255 opacity) + 0.01 (alpha >= 1/255 needs
@@ -58,15 +58,6 @@ _AHEAD = 4
 MAX_TILE = 64
 _PLANE = MAX_TILE * MAX_TILE + _STEP
 
-
-def _f32_at_least(x: float) -> np.float32:
-    """The smallest float32 >= x, so that for float32 a: (a >= x) == (a >= it), (a < x) == (a < it)."""
-    v = np.float32(x)
-    return v if float(v) >= x else np.nextafter(v, np.float32(np.inf))
-
-
-MIN_ALPHA32 = _f32_at_least(MIN_ALPHA)
-T_STOP32 = _f32_at_least(T_STOP)
 
 # exp(f) on |f| <= ln(2)/2: Chebyshev interpolant of degree 6 (relative error 2.5e-9; ~1e-7 once
 # evaluated in float32). ln 2 is split so that n * _LN2_HI is exact for |n| < 2^15 (Cody and Waite).

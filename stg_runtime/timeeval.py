@@ -1,4 +1,7 @@
-"""Time evaluation of Spacetime Gaussians (paper Eq. 7-10; formats/stg-v1.md, section 2)."""
+"""Time evaluation of Spacetime Gaussians on the CPU (paper Eq. 7-10; formats/stg-v1.md, section 2).
+
+The float64 oracle is stg_runtime.spec.evaluate_oracle; the GPU kernel is stg_runtime.cuda.timeeval.
+"""
 from __future__ import annotations
 
 import math
@@ -7,10 +10,8 @@ from typing import NamedTuple
 import numba
 import numpy as np
 
-from .model import Segment
-
-#: Gaussians whose temporal opacity falls below this contribute nothing (formats/stg-v1.md, section 3).
-MIN_ALPHA = 1.0 / 255.0
+from .model import Segment, time_channels
+from .spec import MIN_ALPHA
 
 
 class GaussiansAt(NamedTuple):
@@ -38,7 +39,7 @@ def gaussian_at(tau, t_center, position, rotation, scale, features, time_channel
     time_channels features times tau - t_center).
 
     opacity_at and gaussian_at are plain Python that numba compiles for each target: the CPU's
-    _evaluate here, and stg_runtime.timeeval_cuda's kernel (so they call no helper functions)."""
+    _evaluate here, and stg_runtime.cuda.timeeval's kernel (so they call no helper functions)."""
     d = tau - t_center[i]
     n_pos = position.shape[1]
     n_rot = rotation.shape[1]
@@ -87,11 +88,6 @@ def _evaluate(index, tau, t_center, position, rotation, scale, features, time_ch
                      means, quats, scales, feats, j)
 
 
-def time_channels(segment: Segment) -> int:
-    """How many trailing feature channels are multiplied by (tau - t_center): 3 for full, 0 for lite."""
-    return 3 if segment.channels == 9 else 0
-
-
 def evaluate(segment: Segment, tau: float, min_opacity: float = MIN_ALPHA) -> GaussiansAt:
     """The segment's Gaussians at normalised time tau, keeping those with opacity(tau) >= min_opacity."""
     opac = np.empty(segment.count, dtype=np.float32)
@@ -105,20 +101,3 @@ def evaluate(segment: Segment, tau: float, min_opacity: float = MIN_ALPHA) -> Ga
     _evaluate(index, np.float32(tau), segment.t_center, segment.position, segment.rotation, segment.scale,
               segment.features, time_channels(segment), means, quats, scales, feats)
     return GaussiansAt(index, means, quats, scales, opac[index], feats)
-
-
-def evaluate_reference(segment: Segment, tau: float) -> dict[str, np.ndarray]:
-    """Float64 numpy transcription of the spec's formulas for every Gaussian (for tests)."""
-    d = tau - segment.t_center.astype(np.float64)
-    powers = d[:, None] ** np.arange(segment.position_degree + 1)[None, :]
-    means = np.einsum("nk,nka->na", powers, segment.position.astype(np.float64))
-    rpow = d[:, None] ** np.arange(segment.rotation_degree + 1)[None, :]
-    quats = np.einsum("nk,nka->na", rpow, segment.rotation.astype(np.float64))
-    quats /= np.linalg.norm(quats, axis=1, keepdims=True)
-    feats = segment.features.astype(np.float64).copy()
-    tc = time_channels(segment)
-    if tc:
-        feats[:, -tc:] *= d[:, None]
-    opacity = segment.opacity * np.exp(-segment.t_scale.astype(np.float64) * d ** 2)
-    return {"means": means, "quats": quats, "scales": segment.scale.astype(np.float64),
-            "opacities": opacity, "features": feats}

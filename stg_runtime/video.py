@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .atomic import temporary_path, write_atomic
+
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv")
 
 
@@ -29,10 +31,7 @@ def write_png(path, image: np.ndarray) -> None:
 
     png = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0))
            + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b""))
-    tmp = f"{path}.tmp"
-    with open(tmp, "wb") as f:
-        f.write(png)
-    os.replace(tmp, path)
+    write_atomic(path, png)
 
 
 class FrameWriter:
@@ -51,7 +50,7 @@ class FrameWriter:
                 raise RuntimeError(f"{self.path}: writing video needs OpenCV (pip install opencv-python-headless); "
                                    "or give a folder name to write PNG frames") from None
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self.tmp = self.path.with_name(f".{self.path.stem}.partial{self.path.suffix}")
+            self.tmp = temporary_path(self.path)
             fourcc = cv2.VideoWriter_fourcc(*("mp4v" if self.path.suffix.lower() != ".avi" else "MJPG"))
             self.video = cv2.VideoWriter(str(self.tmp), fourcc, float(fps), (width, height))
             if not self.video.isOpened():

@@ -8,7 +8,7 @@ Needs NVIDIA's NVVM compiler library, no GPU and no driver: numba's own CUDA tar
 toolkit (/usr/local/cuda, or CUDA_HOME); numba-cuda also in its `[cu12]` or `[cu13]` extra's wheels.
 Each kernel is compiled for the argument types its Python wrapper launches it with
 (listed below: a kernel without an entry is an error, so the list stays complete). Exit status: 0 all
-compile, 1 some failed, 2 no NVVM here (nothing was checked). tests/test_cuda_compile.py runs it.
+compile, 1 some failed, 2 no NVVM here (nothing was checked). tests/runtime/cuda/test_compile.py runs it.
 """
 from __future__ import annotations
 
@@ -30,7 +30,7 @@ CAM = T.UniTuple(T.float64, CAMERA_PARAMS)  # projection.camera_params
 
 #: Per module, per kernel: its argument types, or a list of them.
 SIGNATURES = {
-    "splat_cuda": {
+    "cuda.splat": {
         "_project": (f32_2, f32_2, f32_2, f32_1, CAM, I, I, I, f32_2, i32_2, i32_1, f32_2, i32_2, i64_2, i64_1),
         "_clear": (i64_1,),
         # keys: int32 with CuPy when they fit, else int64
@@ -38,18 +38,18 @@ SIGNATURES = {
         "_ranges": [(i32_1, i32_2, i64_1, i64_2, i32_1), (i64_1, i32_2, i64_1, i64_2, i32_1)],
         "_composite": (f32_2, i32_2, f32_2, i64_2, i32_1, I, I, I, I, f32_3, f32_2, f32_2),
     },
-    "timeeval_cuda": {
+    "cuda.timeeval": {
         "_evaluate": (T.float32, f32_1, f32_1, f32_1, T.float32[:, :, ::1], T.float32[:, :, ::1], f32_2, f32_2,
                       I, f32_2, f32_2, f32_2, f32_1, f32_2),
     },
-    "decoder_cuda": {
+    "cuda.decoder": {
         "_decode": (f32_3, f32_2, f32_2, CAM, B, f32_3),
         "_decoder_rows": (f32_3, CAM, f32_2),
         "_add_base": (f32_3, f32_2, B, f32_3),
         "_lite": (f32_3, f32_3),
         "_sh": (f32_2, f32_2, CAM, f32_2),
     },
-    "sort_cuda": {
+    "cuda.sort": {
         "_scan_tiles": [(i32_1, i64_1, i64_1), (i64_1, i64_1, i64_1)],
         "_add_offsets": (i64_1, i64_1),
         "_histogram": (i64_1, I, i32_1),

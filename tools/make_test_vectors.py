@@ -1,8 +1,8 @@
 #!/usr/bin/env python
 """Regenerate the test vectors in formats/vectors/: tiny .stg files and their expected renders.
 
-The expected renders come from the float64 reference path (timeeval.evaluate_reference,
-splat_reference.rasterize_reference and a numpy decoder), not from the Player, so a player is checked
+The expected renders come from the float64 oracles (stg_runtime.spec: evaluate_oracle,
+sh_colours_oracle, rasterize_oracle) and a numpy decoder, not from the Player, so a player is checked
 against an independent transcription of formats/stg-v1.md. Usage: python tools/make_test_vectors.py
 """
 from __future__ import annotations
@@ -15,9 +15,7 @@ import numpy as np
 from stg_runtime import Camera, Model, Segment
 from stg_runtime import format as stg_format
 from stg_runtime.onnx_mlp import mlp_to_onnx
-from stg_runtime.sh import sh_colours_reference
-from stg_runtime.splat_reference import rasterize_reference
-from stg_runtime.timeeval import evaluate_reference
+from stg_runtime.spec import evaluate_oracle, rasterize_oracle, sh_colours_oracle
 
 OUT = Path(__file__).resolve().parent.parent / "formats" / "vectors"
 FPS = 10.0
@@ -58,11 +56,11 @@ def _numpy_decoder(features, camera, weights, activation):
 def expected_render(model: Model, camera: Camera, t: float, weights) -> np.ndarray:
     """(H, W, 3) float64 render of `model` at t seconds by the reference path."""
     seg, tau = model.segment_at(t)
-    g = evaluate_reference(seg, tau)
+    g = evaluate_oracle(seg, tau)
     colours = g["features"]
     if model.kind == "sh":  # per-Gaussian colour for this view, before splatting
-        colours = sh_colours_reference(colours, g["means"], camera.center)
-    feats, _, _ = rasterize_reference(g["means"], g["quats"], g["scales"], g["opacities"], colours, camera)
+        colours = sh_colours_oracle(colours, g["means"], camera.center)
+    feats, _, _ = rasterize_oracle(g["means"], g["quats"], g["scales"], g["opacities"], colours, camera)
     if model.kind in ("lite", "sh"):
         return np.clip(feats[..., :3], 0, 1)
     return _numpy_decoder(feats, camera, weights, seg.activation)

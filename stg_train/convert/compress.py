@@ -33,8 +33,7 @@ import numpy as np
 from stg_runtime import format as stg_format
 from stg_runtime.model import ATTRIBUTES, Model, Segment
 from stg_runtime.player import Player
-from stg_runtime.splat_reference import project_reference
-from stg_runtime.timeeval import MIN_ALPHA
+from stg_runtime.spec import MIN_ALPHA, project_oracle
 
 
 @dataclass(frozen=True)
@@ -127,7 +126,7 @@ def seen_mask(segment: Segment, cameras, margin: float = 1.0) -> np.ndarray:
         for k in range(segment.rotation_degree, -1, -1):
             quats = quats * dd + segment.rotation[idx, k]
         for cam in cameras:
-            p = project_reference(means, quats, segment.scale[idx], cam)
+            p = project_oracle(means, quats, segment.scale[idx], cam)
             r = p.radius + margin
             u, v = p.mean2d[:, 0], p.mean2d[:, 1]
             hit = (p.visible & (u + r >= 0.5) & (u - r <= cam.width - 0.5)

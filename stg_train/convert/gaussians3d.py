@@ -16,8 +16,9 @@ from pathlib import Path
 import numpy as np
 
 from stg_runtime import Camera, Model, Segment
-from stg_runtime.sh import C0
-from stg_runtime.timeeval import MIN_ALPHA, evaluate
+from stg_runtime.spec import MIN_ALPHA
+from stg_runtime.spec import SH_C0 as C0
+from stg_runtime.timeeval import evaluate
 
 from .ply import PLYError, read_ply, require, write_ply
 

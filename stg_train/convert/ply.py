@@ -10,7 +10,7 @@ import os
 
 import numpy as np
 
-from stg_runtime.format import write_atomic
+from stg_runtime.atomic import write_atomic
 
 #: PLY scalar type names (both spellings) -> numpy dtype.
 TYPES = {

@@ -12,9 +12,9 @@ from stg_runtime import format as stg_format
 from stg_runtime.cli import main as render_main
 from stg_runtime.demo import demo_model
 from stg_runtime.format import FormatError
-from stg_runtime.player import save_camera_path
+from stg_runtime.camera import save_camera_path
 
-VECTORS = Path(__file__).resolve().parent.parent / "formats" / "vectors"
+VECTORS = Path(__file__).resolve().parents[2] / "formats" / "vectors"
 INDEX = json.loads((VECTORS / "index.json").read_text())
 
 
@@ -88,9 +88,9 @@ def test_bad_file_raises_format_error(tmp_path):
 
 
 def test_cuda_device_without_gpu_is_refused_clearly():
-    from stg_runtime import splat_cuda
-    if splat_cuda.usable():
-        pytest.skip("numba sees a GPU (or its simulator) here: see tests/test_splat_cuda.py")
+    from stg_runtime.cuda import device
+    if device.usable():
+        pytest.skip("numba sees a GPU (or its simulator) here: see tests/runtime/cuda/test_kernels.py")
     with pytest.raises(RuntimeError, match="numba sees no CUDA GPU.*device='cpu'"):
         Player(demo_model("lite", num_frames=2), device="cuda")
     with pytest.raises(ValueError, match="device must be one of"):

@@ -14,7 +14,7 @@ pipeline (everything stays on the device, except where said):
    number of kept Gaussians K to two device counters, which are the only values copied to the host.
    The same launch clears the tile ranges.
 2. Depth order: the depth keys sorted (CuPy's sort in place; without CuPy, or with sort="numba",
-   stg_runtime.sort_cuda's radix sort). Positive floats and +inf order as their bits, so this is the
+   stg_runtime.cuda.sort's radix sort). Positive floats and +inf order as their bits, so this is the
    order of increasing float32 z, ties (in float32) by index, culled Gaussians last.
 3. _duplicate (one thread per rank r < K): one key tile * K + r per tile the Gaussian meets; blocks
    take their places in the key array from a third counter. The keys are unique, int32 when they
@@ -27,13 +27,13 @@ pipeline (everything stays on the device, except where said):
    lists; one kernel is compiled per channel count, so its loops unroll). A block ends once all its
    pixels have stopped (syncthreads_count).
 
-What a frame costs on the host matters as much as the kernels (at 200k Gaussians the kernels take
-about 0.5 ms on an H200): buffers are kept in a Workspace between frames (with CuPy, from CuPy's memory
-pool), launches repeat with the same arrays and go through stg_runtime.cuda_launch, the camera is
-passed by value (camera_params), and the host waits for the device once, for the two counters.
+What a frame costs on the host matters as much as the kernels (docs/gpu.md measures both): buffers are
+kept in a Workspace between frames (stg_runtime.cuda.memory), launches repeat with the same arrays and
+go through stg_runtime.cuda.launch, the camera is passed by value (camera_params), and the host waits
+for the device once, for the two counters.
 stage_seconds() times the steps (bench/render.py prints them).
 
-Colour on the device: stg_runtime.decoder_cuda; time evaluation: stg_runtime.timeeval_cuda.
+Colour on the device: stg_runtime.cuda.decoder; time evaluation: stg_runtime.cuda.timeeval.
 
 Under numba's simulator (NUMBA_ENABLE_CUDASIM=1, set before numba.cuda is first imported) the same
 kernels run on the CPU, slowly: the tests use it on tiny images.
@@ -46,33 +46,21 @@ import time
 from contextlib import contextmanager
 
 import numpy as np
-from numba import config as _numba_config
 from numba import cuda
 
-from . import sort_cuda
-from .camera import Camera
-from .cuda_launch import launch
-from .cuda_math import dmin
-from .projection import camera_params, footprint
-from .splat_reference import MAX_ALPHA, MIN_ALPHA, T_STOP
+from ..camera import Camera
+from ..projection import camera_params, footprint
+from ..spec import MAX_ALPHA32, MIN_ALPHA32, T_STOP32
+from . import sort as device_sort
+from .device import cupy as _cupy
+from .device import is_device_array, require, simulated
+from .launch import launch
+from .memory import Buffer, Workspace, device_f32
+from .minmax import dmin
 
-_CUPY: list = []
-
-
-def _cupy():
-    """CuPy (the device sort and scan) when it imports and a real GPU is used, else None."""
-    if not _CUPY:
-        try:
-            import cupy  # type: ignore
-        except Exception:  # noqa: BLE001 (ImportError, or a CuPy without its CUDA libraries)
-            cupy = None
-        _CUPY.append(None if simulated() else cupy)
-    return _CUPY[0]
-
-
-#: sort_cuda's block shape: its defaults on a GPU; under the simulator, where every barrier of every
-#: block costs milliseconds, small blocks (the same kernels; tests/test_sort_cuda.py covers both).
-_SORT_SHAPE: dict = {"_block": 8, "_items": 4} if _numba_config.ENABLE_CUDASIM else {}
+#: cuda.sort's block shape: its defaults on a GPU; under the simulator, where every barrier of every
+#: block costs milliseconds, small blocks (the same kernels; tests/runtime/cuda/test_sort.py covers both).
+_SORT_SHAPE: dict = {"_block": 8, "_items": 4} if simulated() else {}
 
 #: Feature channels accumulated per compositing launch (registers per thread).
 CHANNELS_PER_PASS = 16
@@ -80,49 +68,6 @@ CHANNELS_PER_PASS = 16
 #: Gaussians (12 KiB at 16).
 MAX_TILE = 16
 _BATCH = MAX_TILE * MAX_TILE
-
-
-def _f32_at_least(x: float) -> np.float32:
-    v = np.float32(x)
-    return v if float(v) >= x else np.nextafter(v, np.float32(np.inf))
-
-
-MIN_ALPHA32 = _f32_at_least(MIN_ALPHA)
-T_STOP32 = _f32_at_least(T_STOP)
-MAX_ALPHA32 = np.float32(MAX_ALPHA)
-
-
-def simulated() -> bool:
-    """Whether numba.cuda is numba's CPU simulator (NUMBA_ENABLE_CUDASIM=1)."""
-    return bool(_numba_config.ENABLE_CUDASIM)
-
-
-_GPU: list = []
-
-
-def gpu_available() -> bool:
-    """Whether numba sees a real CUDA GPU (never true under the simulator); asked once per process."""
-    if simulated():
-        return False
-    if not _GPU:
-        try:
-            _GPU.append(bool(cuda.is_available()))
-        except Exception:  # noqa: BLE001 (a broken driver counts as no GPU)
-            _GPU.append(False)
-    return _GPU[0]
-
-
-def usable() -> bool:
-    """Whether the kernels can run here: a real GPU, or the simulator."""
-    return simulated() or gpu_available()
-
-
-def require() -> None:
-    """Raise RuntimeError, saying why, unless the kernels can run here."""
-    if not usable():
-        raise RuntimeError("device 'cuda': numba sees no CUDA GPU (no NVIDIA driver/GPU, or the CUDA "
-                           "toolkit is missing); use device='cpu', or set NUMBA_ENABLE_CUDASIM=1 before "
-                           "starting Python to run the GPU kernels in numba's (slow) CPU simulator")
 
 
 _footprint = cuda.jit(device=True, inline=True)(footprint)
@@ -330,90 +275,6 @@ def _lap(name: str, since: float) -> float:
     return now
 
 
-def is_device_array(x) -> bool:
-    """Whether x is a device array (numba's, CuPy's, any __cuda_array_interface__; the simulator's)."""
-    if isinstance(x, np.ndarray):
-        return False
-    return (getattr(type(x), "__cuda_array_interface__", None) is not None or hasattr(x, "__cuda_array_interface__")
-            or (simulated() and hasattr(x, "copy_to_host")))
-
-
-def _device_f32(x, shape):
-    """A contiguous float32 device array of `shape` (-1 allowed) from a host or device array (device
-    arrays of that shape are returned as they are)."""
-    if is_device_array(x):
-        d = x if hasattr(x, "copy_to_host") else cuda.as_cuda_array(x)
-        if d.dtype != np.float32:
-            raise TypeError(f"device inputs must be float32, got {d.dtype}")
-        if -1 in shape:
-            known = int(np.prod([v for v in shape if v != -1]))
-            shape = tuple(d.size // known if v == -1 else v for v in shape)
-        return d if d.shape == shape else d.reshape(shape)
-    return cuda.to_device(np.ascontiguousarray(np.asarray(x, dtype=np.float32).reshape(shape)))
-
-
-def device_empty(shape, dtype):
-    """An uninitialised device array (numba's type). With CuPy in use it comes from CuPy's memory pool
-    (numba's own allocations call cudaMalloc and cudaFree, tens of microseconds each, and the frees
-    synchronise the device); it is ordered with CuPy's work as both use the default stream."""
-    return _allocate(shape, dtype)[0]
-
-
-def _allocate(shape, dtype):
-    """(numba device array, the CuPy array it views or None): uninitialised, from CuPy's pool when CuPy
-    is in use. The numba view is made without numba's synchronisation on foreign arrays (both
-    libraries use the default stream here)."""
-    cupy = _cupy()
-    if cupy is None:
-        return cuda.device_array(shape, dtype), None
-    array = cupy.empty(shape, dtype)
-    return cuda.as_cuda_array(array, sync=False), array
-
-
-class _Buffer:
-    """One workspace buffer: the numba array, the CuPy array it views (or None), views made once."""
-
-    __slots__ = ("device", "cupy", "shape", "dtype", "views")
-
-    def __init__(self, shape, dtype):
-        self.shape, self.dtype = shape, np.dtype(dtype)
-        self.device, self.cupy = _allocate(shape, dtype)
-        self.views: dict = {}
-
-    def view(self, dtype, shape):
-        """The buffer's memory as `dtype` in `shape` (a numba array, made once)."""
-        key = (np.dtype(dtype).char, shape)
-        if key not in self.views:
-            self.views[key] = self.device.view(dtype).reshape(shape)
-        return self.views[key]
-
-
-class Workspace:
-    """Device buffers that rasterize keeps from one call to the next, so that a frame allocates nothing
-    and its kernel launches repeat with the same arrays (stg_runtime.cuda_launch replays them).
-
-    The results of rasterize(..., workspace=ws, out="device") are buffers of ws: the next call with ws
-    overwrites them (copy what must be kept). Player keeps one per player. buffer() gives callers
-    their own named buffers in the same way (Player's rgb image, say).
-    """
-
-    def __init__(self):
-        self._buffers: dict[str, _Buffer] = {}
-
-    def buffer(self, name: str, shape, dtype, *, at_least: bool = False) -> _Buffer:
-        """The buffer called `name`: kept while its shape and dtype stay, else a new uninitialised one.
-        at_least (1-D only): any length >= shape[0] will do; a new one gets half as much again."""
-        shape = tuple(int(v) for v in shape)
-        b = self._buffers.get(name)
-        if b is not None and b.dtype == dtype and (
-                b.shape == shape or (at_least and len(b.shape) == 1 and b.shape[0] >= shape[0])):
-            return b
-        if at_least:
-            shape = (max(shape[0], 1) * 3 // 2 + 256,)
-        b = self._buffers[name] = _Buffer(shape, dtype)
-        return b
-
-
 def _blocks(n, threads=256):
     """(blocks, threads per block) for n threads: blocks of `threads`, fewer for small n."""
     threads = min(threads, max(32, -(-n // 32) * 32))
@@ -424,7 +285,7 @@ SORTS = ("auto", "cupy", "numba")
 
 
 def _sorter(sort: str):
-    """CuPy for sort "cupy" (an error without it) and "auto" (when installed), else None (sort_cuda)."""
+    """CuPy for sort "cupy" (an error without it) and "auto" (when installed), else None (cuda.sort)."""
     if sort not in SORTS:
         raise ValueError(f"sort must be one of {SORTS}, got {sort!r}")
     if sort == "numba":
@@ -436,9 +297,9 @@ def _sorter(sort: str):
     return cupy
 
 
-def _host_counts(counters: _Buffer):
+def _host_counts(counters: Buffer):
     """counters[0] (tile entries) and counters[1] (Gaussians kept) on the host: waits for the device."""
-    host = counters.cupy.get() if counters.cupy is not None else counters.device.copy_to_host()
+    host = counters.to_host()
     return int(host[0]), int(host[1])
 
 
@@ -450,7 +311,7 @@ def rasterize(means, quats, scales, opacities, features, camera: Camera, *, tile
     scales (M, 3), opacities (M,), features (M, C): numpy or device arrays (converted to float32).
     tile_size in 1..MAX_TILE (16; pixels; speed only). Returns (features (H, W, C), alpha (H, W), depth (H, W))
     float32: numpy arrays, or numba device arrays with out="device". sort: the device sort, "cupy",
-    "numba" (stg_runtime.sort_cuda) or "auto" (CuPy where installed); speed only. workspace: buffers
+    "numba" (stg_runtime.cuda.sort) or "auto" (CuPy where installed); speed only. workspace: buffers
     kept between calls (see Workspace; with out="device" the results are its buffers); without one,
     every buffer is new.
     """
@@ -465,18 +326,18 @@ def rasterize(means, quats, scales, opacities, features, camera: Camera, *, tile
         cuda.synchronize()  # the caller's work is not this call's
     lap = time.perf_counter()
     ws = workspace if workspace is not None else Workspace()
-    means_d = _device_f32(means, (-1, 3))
+    means_d = device_f32(means, (-1, 3))
     m = means_d.shape[0]
-    quats_d = _device_f32(quats, (m, 4))
-    scales_d = _device_f32(scales, (m, 3))
-    opac_d = _device_f32(opacities, (m,))
+    quats_d = device_f32(quats, (m, 4))
+    scales_d = device_f32(scales, (m, 3))
+    opac_d = device_f32(opacities, (m,))
     if not is_device_array(features):
         features = np.asarray(features)
     shape = tuple(features.shape)  # (the simulator's shapes take no negative index)
     C = shape[1] if len(shape) == 2 else (int(np.prod(shape)) // max(m, 1))
     if C < 1:
         raise ValueError("features need at least one channel")
-    feat_d = _device_f32(features, (m, C))
+    feat_d = device_f32(features, (m, C))
     W, H = camera.width, camera.height
     tiles_x = -(-W // tile_size)
     n_tiles = tiles_x * -(-H // tile_size)
@@ -504,10 +365,10 @@ def rasterize(means, quats, scales, opacities, features, camera: Camera, *, tile
             depth_keys.cupy.sort()
             order = depth_ids
         else:
-            order = sort_cuda.radix_sort(depth_keys.device, key_bits=63, **_SORT_SHAPE)[0]
+            order = device_sort.radix_sort(depth_keys.device, key_bits=63, **_SORT_SHAPE)[0]
             order = order.view(np.int32).reshape(m1, 2)
         lap = _lap("depth order", lap)
-        # tile * kept + rank: for CuPy int32 keys (half its sort's work) when they fit (sort_cuda sorts
+        # tile * kept + rank: for CuPy int32 keys (half its sort's work) when they fit (cuda.sort sorts
         # int64, by the keys' bit length).
         key_type = np.int32 if cupy is not None and n_tiles * kept <= 2**31 else np.int64
         keys = ws.buffer(f"tile keys {np.dtype(key_type).char}", (total,), key_type, at_least=True)
@@ -518,7 +379,7 @@ def rasterize(means, quats, scales, opacities, features, camera: Camera, *, tile
             keys.cupy[:total].sort()
             sorted_keys = keys.device
         else:
-            sorted_keys = sort_cuda.radix_sort(keys.device[:total], key_bits=int(n_tiles * kept - 1).bit_length(),
+            sorted_keys = device_sort.radix_sort(keys.device[:total], key_bits=int(n_tiles * kept - 1).bit_length(),
                                                **_SORT_SHAPE)[0]
         lap = _lap("tile sort", lap)
         launch(_ranges, min(-(-keys.shape[0] // 256), 4096), 256, sorted_keys, order, counters.device, tile_range,

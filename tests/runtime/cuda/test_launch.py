@@ -1,10 +1,11 @@
-"""stg_runtime.cuda_launch's replay logic, against a stand-in for numba-cuda's dispatcher module (the
-real one needs a GPU: tests/test_splat_cuda.py's GPU tests run every kernel through it there).
+"""stg_runtime.cuda.launch's replay logic, against a stand-in for numba-cuda's dispatcher module (the
+real one needs a GPU: tests/runtime/cuda/test_kernels.py's GPU tests run every kernel through it
+there).
 
 The stand-in kernel marshals its arguments as numba does (an array: several parameters; a scalar: one,
 a ctypes value; a tuple: one per element) into a deterministic parameter list, and records every list
 that reaches `launch` (as plain values), so a replay can be compared with what a plain launch of the
-same arguments would pass. An np.int8 scalar is marshalled as a non-ctypes value, which cuda_launch
+same arguments would pass. An np.int8 scalar is marshalled as a non-ctypes value, which cuda.launch
 must convert through the kernel's own _prepare_args.
 """
 from __future__ import annotations
@@ -15,7 +16,7 @@ import gc
 import numpy as np
 import pytest
 
-from stg_runtime import cuda_launch
+from stg_runtime.cuda import launch as cuda_launch
 
 
 class FakeArray:
@@ -93,7 +94,7 @@ def fake(monkeypatch):
 
 
 def _plain_params(kernel, *args):
-    """The parameters a plain launch passes (the stand-in's marshalling, without cuda_launch)."""
+    """The parameters a plain launch passes (the stand-in's marshalling, without cuda.launch)."""
     params: list = []
     for a in args:
         _marshal(kernel.typeof_pyval(a), a, params)

@@ -1,13 +1,17 @@
-"""Reference splatter: a slow, float64 numpy transcription of formats/stg-v1.md, section 3.
+"""formats/stg-v1.md in code: its constants, and float64 oracles that transcribe its formulas.
 
-It exists to be obviously the spec, not to be fast: every Gaussian is projected with whole-array numpy,
-then the Gaussians are composited one at a time, in (depth, index) order, over every pixel centre of
-the image at once. Use it for tests and for checking other splatters (stg_runtime.splat_cpu).
+The oracles are slow, whole-array numpy, written to be obviously the spec rather than fast; every
+fast path (stg_runtime.timeeval / sh / splat_cpu, stg_runtime.cuda, the trainer's torch splatter) is
+tested against them:
 
-Inputs (any float dtype, converted to float64):
-    means (M, 3) world positions; quats (M, 4) wxyz, normalised here (a zero quaternion is the
-    identity); scales (M, 3) standard deviations along the local axes (world units); opacities (M,)
-    in [0, 1]; features (M, C), any C >= 1; camera: stg_runtime.camera.Camera.
+    evaluate_oracle(segment, tau)                   the time evaluation (section 2)
+    sh_colours_oracle(coeffs, means, centre)        the "sh" colour (section 2, Colour)
+    project_oracle(means, quats, scales, camera)    EWA projection (section 3)
+    rasterize_oracle(means, quats, scales, opacities, features, camera)   compositing (section 3)
+
+Inputs (any float dtype, converted to float64): means (M, 3) world positions; quats (M, 4) wxyz,
+normalised here (a zero quaternion is the identity); scales (M, 3) standard deviations along the local
+axes (world units); opacities (M,) in [0, 1]; features (M, C), any C >= 1; camera: a Camera.
 """
 from __future__ import annotations
 
@@ -16,14 +20,83 @@ from typing import NamedTuple
 import numpy as np
 
 from .camera import Camera
+from .model import Segment, sh_degree_of, time_channels
 
-#: The constants of formats/stg-v1.md, section 3.
+# -- section 3: the rendering constants ------------------------------------------------------------
 NEAR = 0.01
 JACOBIAN_CLAMP = 1.3
+#: JACOBIAN_CLAMP - 1: how far beyond the image x/z and y/z may go, in half fields of view.
+JACOBIAN_MARGIN = 0.3
 BLUR = 0.3
 MIN_ALPHA = 1.0 / 255.0
 MAX_ALPHA = 0.99
 T_STOP = 1e-4
+
+
+def f32_at_least(x: float) -> np.float32:
+    """The smallest float32 >= x, so that for float32 a: (a >= x) == (a >= it), (a < x) == (a < it)."""
+    v = np.float32(x)
+    return v if float(v) >= x else np.nextafter(v, np.float32(np.inf))
+
+
+#: The thresholds as float32 splatters compare with them (the same decisions as in float64).
+MIN_ALPHA32 = f32_at_least(MIN_ALPHA)
+T_STOP32 = f32_at_least(T_STOP)
+MAX_ALPHA32 = np.float32(MAX_ALPHA)
+
+# -- section 2: the real SH constants of 3D Gaussian Splatting (degree 0, 1, 2, 3) -----------------
+SH_C0 = 0.28209479177387814
+SH_C1 = 0.4886025119029199
+SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
+         -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
+def sh_basis(dirs: np.ndarray, degree: int) -> np.ndarray:
+    """(M, 3) unit directions -> (M, (degree+1)^2) float64 basis values Y_k(dir) (3DGS's constants and signs)."""
+    x, y, z = np.asarray(dirs, dtype=np.float64).T
+    out = [np.full_like(x, SH_C0)]
+    if degree > 0:
+        out += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
+    if degree > 1:
+        xx, yy, zz = x * x, y * y, z * z
+        c2 = SH_C2
+        out += [c2[0] * x * y, c2[1] * y * z, c2[2] * (2 * zz - xx - yy), c2[3] * x * z, c2[4] * (xx - yy)]
+    if degree > 2:
+        c3 = SH_C3
+        out += [c3[0] * y * (3 * xx - yy), c3[1] * x * y * z, c3[2] * y * (4 * zz - xx - yy),
+                c3[3] * z * (2 * zz - 3 * xx - 3 * yy), c3[4] * x * (4 * zz - xx - yy), c3[5] * z * (xx - yy),
+                c3[6] * x * (xx - 3 * yy)]
+    return np.stack(out, axis=1)
+
+
+# -- the oracles -----------------------------------------------------------------------------------
+def evaluate_oracle(segment: Segment, tau: float) -> dict[str, np.ndarray]:
+    """Every Gaussian of `segment` at normalised time tau (section 2), float64: {"means" (N, 3),
+    "quats" (N, 4) unit wxyz, "scales" (N, 3), "opacities" (N,), "features" (N, C)}."""
+    d = tau - segment.t_center.astype(np.float64)
+    powers = d[:, None] ** np.arange(segment.position_degree + 1)[None, :]
+    means = np.einsum("nk,nka->na", powers, segment.position.astype(np.float64))
+    rpow = d[:, None] ** np.arange(segment.rotation_degree + 1)[None, :]
+    quats = np.einsum("nk,nka->na", rpow, segment.rotation.astype(np.float64))
+    quats /= np.linalg.norm(quats, axis=1, keepdims=True)
+    feats = segment.features.astype(np.float64).copy()
+    tc = time_channels(segment)
+    if tc:
+        feats[:, -tc:] *= d[:, None]
+    opacity = segment.opacity * np.exp(-segment.t_scale.astype(np.float64) * d ** 2)
+    return {"means": means, "quats": quats, "scales": segment.scale.astype(np.float64),
+            "opacities": opacity, "features": feats}
+
+
+def sh_colours_oracle(coeffs, means, camera_center) -> np.ndarray:
+    """(M, 3) float64 max(SH(dir) + 0.5, 0) per Gaussian: coeffs (M, 3 K) coefficient-major, means (M, 3),
+    dir the unit vector from camera_center (3,) to the mean (zero when they coincide)."""
+    coeffs = np.asarray(coeffs, dtype=np.float64)
+    k = coeffs.shape[1] // 3
+    d = np.asarray(means, dtype=np.float64) - np.asarray(camera_center, dtype=np.float64).reshape(1, 3)
+    norm = np.linalg.norm(d, axis=1, keepdims=True)
+    d = d / np.where(norm > 0, norm, 1.0)
+    values = np.einsum("mk,mkc->mc", sh_basis(d, sh_degree_of(coeffs.shape[1])), coeffs.reshape(-1, k, 3))
+    return np.maximum(values + 0.5, 0.0)
 
 
 class Projection(NamedTuple):
@@ -57,7 +130,7 @@ def quat_to_rotmat(quats: np.ndarray) -> np.ndarray:
     ], axis=1)
 
 
-def project_reference(means, quats, scales, camera: Camera) -> Projection:
+def project_oracle(means, quats, scales, camera: Camera) -> Projection:
     """Project every Gaussian to the image (EWA splatting, spec section 3). See Projection."""
     means = np.asarray(means, dtype=np.float64).reshape(-1, 3)
     scales = np.asarray(scales, dtype=np.float64).reshape(-1, 3)
@@ -81,8 +154,8 @@ def project_reference(means, quats, scales, camera: Camera) -> Projection:
 
     # EWA Jacobian with x/z, y/z clamped to 1.3 x the half field of view (spec, "Jacobian clamp").
     tan_x, tan_y = W / (2 * fx), H / (2 * fy)
-    xz = np.clip(x / zs, -(cx / fx + 0.3 * tan_x), (W - cx) / fx + 0.3 * tan_x)
-    yz = np.clip(y / zs, -(cy / fy + 0.3 * tan_y), (H - cy) / fy + 0.3 * tan_y)
+    xz = np.clip(x / zs, -(cx / fx + JACOBIAN_MARGIN * tan_x), (W - cx) / fx + JACOBIAN_MARGIN * tan_x)
+    yz = np.clip(y / zs, -(cy / fy + JACOBIAN_MARGIN * tan_y), (H - cy) / fy + JACOBIAN_MARGIN * tan_y)
     J = np.zeros((len(z), 2, 3))
     J[:, 0, 0] = fx / zs
     J[:, 0, 2] = -fx * xz / zs
@@ -103,7 +176,7 @@ def project_reference(means, quats, scales, camera: Camera) -> Projection:
     return Projection(visible, mean2d, np.stack([a, b, c], axis=1), conic, radius, z)
 
 
-def rasterize_reference(means, quats, scales, opacities, features, camera: Camera, *, margins=None):
+def rasterize_oracle(means, quats, scales, opacities, features, camera: Camera, *, margins=None):
     """Render M Gaussians with the spec's rules, in float64.
 
     Returns (features (H, W, C), alpha (H, W), depth (H, W)), float64: F = sum w_i f_i,
@@ -115,7 +188,7 @@ def rasterize_reference(means, quats, scales, opacities, features, camera: Camer
     (pixels), "power" min |power| (the power < 0 skip), "alpha" min |alpha * 255 - 1| (the 1/255
     floor, relative), "stop" min |T (1 - alpha) / 1e-4 - 1| (the transmittance stop, relative).
     """
-    proj = project_reference(means, quats, scales, camera)
+    proj = project_oracle(means, quats, scales, camera)
     opacities = np.asarray(opacities, dtype=np.float64).reshape(-1)
     features = np.asarray(features, dtype=np.float64)
     features = features.reshape(len(opacities), features.shape[-1] if features.ndim == 2 else -1)

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from stg_runtime import Camera, Player
-from stg_runtime.splat_reference import MIN_ALPHA, rasterize_reference
+from stg_runtime.spec import MIN_ALPHA, rasterize_oracle
 from stg_train.convert.ply import PLYError, write_ply
 from stg_train.convert.reference import ReferenceModelError, import_reference, load_decoder
 
@@ -46,7 +46,7 @@ def reference_render(p: dict, weights, t: float, kind: str) -> np.ndarray:
     if kind == "full":
         feats = np.concatenate([feats, dt * col("f_t", 3)], 1)
     keep = opacity >= MIN_ALPHA
-    F, _, _ = rasterize_reference(xyz[keep], q[keep], np.exp(col("scale", 3))[keep], opacity[keep], feats[keep], CAMERA)
+    F, _, _ = rasterize_oracle(xyz[keep], q[keep], np.exp(col("scale", 3))[keep], opacity[keep], feats[keep], CAMERA)
     if kind == "lite":
         return np.clip(F[..., :3], 0, 1)
     rays = CAMERA.ray_directions()

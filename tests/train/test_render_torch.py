@@ -7,7 +7,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from stg_runtime.camera import Camera  # noqa: E402
-from stg_runtime.splat_reference import rasterize_reference  # noqa: E402
+from stg_runtime.spec import rasterize_oracle  # noqa: E402
 from stg_train.splat import RenderOutput, rasterize  # noqa: E402
 from stg_train.timeeval import evaluate  # noqa: E402
 
@@ -51,9 +51,9 @@ CASES = [(seed, w, h, c, dense) for seed in range(3) for (w, h, c) in [(64, 48, 
 
 
 @pytest.mark.parametrize("seed,width,height,channels,dense", CASES)
-def test_matches_reference(seed, width, height, channels, dense):
+def test_matches_oracle(seed, width, height, channels, dense):
     cam, arrays = _scene(seed, width, height, channels, n=150 if dense else 80, dense=dense)
-    ref = rasterize_reference(*arrays, cam)
+    ref = rasterize_oracle(*arrays, cam)
     out = rasterize(*[torch.tensor(a, dtype=torch.float32) for a in arrays], cam)
     assert isinstance(out, RenderOutput)
     assert out.features.shape == (height, width, channels) and out.alpha.shape == out.depth.shape == (height, width)
@@ -88,7 +88,7 @@ def test_tiling_does_not_change_the_result(tile_size, chunk, max_elements):
 
 def test_float64_matches_reference_exactly():
     cam, arrays = _scene(7, 50, 37, 9, n=150, dense=True)
-    ref = rasterize_reference(*arrays, cam)
+    ref = rasterize_oracle(*arrays, cam)
     out = rasterize(*[torch.tensor(a, dtype=torch.float64) for a in arrays], cam)
     for got, want in zip(out[:3], ref):
         np.testing.assert_allclose(got.numpy(), want, atol=1e-12, rtol=1e-12)

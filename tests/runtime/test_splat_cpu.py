@@ -1,5 +1,5 @@
-"""The CPU splatter (stg_runtime.splat_cpu) against the float64 reference transcription of
-formats/stg-v1.md, section 3 (stg_runtime.splat_reference), and both against hand-computed cases."""
+"""The CPU splatter (stg_runtime.splat_cpu) against the float64 oracle of formats/stg-v1.md, section 3
+(stg_runtime.spec.rasterize_oracle), and both against hand-computed cases."""
 from __future__ import annotations
 
 import numpy as np
@@ -7,7 +7,9 @@ import pytest
 
 from stg_runtime.camera import Camera
 from stg_runtime.splat_cpu import rasterize
-from stg_runtime.splat_reference import MAX_ALPHA, T_STOP, project_reference, rasterize_reference
+from stg_runtime.spec import MAX_ALPHA, T_STOP, project_oracle, rasterize_oracle
+
+from tests.scenes import clean_scenes, random_scene
 
 #: float32 against float64 on the same inputs: features and alpha are sums of at most a few hundred
 #: terms of size <= 1, each with a relative error ~1e-7 (float32 rounding; exp ~2e-7), so 1e-4 is a
@@ -15,65 +17,6 @@ from stg_runtime.splat_reference import MAX_ALPHA, T_STOP, project_reference, ra
 #: its threshold. Depth is sum w z / alpha, so its error scales with z: the bound is 1e-4 * max(1, z)
 #: where alpha > 0.5.
 TOL = 1e-4
-
-
-def _random_rotation(rng):
-    q = rng.normal(size=4)
-    w, x, y, z = q / np.linalg.norm(q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
-
-
-def random_scene(rng, m, width, height, channels, opacity=(0.0, 1.0), size=(0.2, 6.0)):
-    """m Gaussians seen by a randomly posed camera with an off-centre principal point: most in front,
-    some behind the camera, some at the near plane, some mostly outside the image; opacities uniform
-    in `opacity`, standard deviations log-uniform in `size` pixels (at their depth), per axis.
-    float32 arrays."""
-    fx = rng.uniform(0.8, 1.2) * width
-    fy = fx * rng.uniform(0.9, 1.1)
-    cx = width * rng.uniform(0.35, 0.65)
-    cy = height * rng.uniform(0.35, 0.65)
-    R = _random_rotation(rng)
-    eye = rng.normal(size=3)
-    w2c = np.eye(4)
-    w2c[:3, :3] = R
-    w2c[:3, 3] = -R @ eye
-    camera = Camera(fx, fy, cx, cy, width, height, w2c)
-    z = rng.uniform(0.5, 6.0, m)
-    kind = rng.uniform(size=m)
-    z[kind < 0.1] = rng.uniform(-3.0, -0.01, (kind < 0.1).sum())  # behind the camera
-    near = (kind >= 0.1) & (kind < 0.15)
-    z[near] = rng.uniform(0.0, 0.03, near.sum())  # around the near plane (0.01)
-    u = rng.uniform(-0.3, 1.3, m) * width  # some centres outside the image
-    v = rng.uniform(-0.3, 1.3, m) * height
-    p_cam = np.stack([(u - cx) / fx * np.abs(z), (v - cy) / fy * np.abs(z), z], axis=1)
-    means = (p_cam - w2c[:3, 3]) @ R  # R^T (p - t)
-    pixel_size = np.abs(z) / fx  # world size of a pixel at that depth
-    scales = pixel_size[:, None] * np.exp(rng.uniform(np.log(size[0]), np.log(size[1]), (m, 3)))
-    quats = rng.normal(size=(m, 4)) * rng.uniform(0.5, 2.0, (m, 1))  # not unit length
-    opacities = rng.uniform(*opacity, m)
-    features = rng.uniform(-1.0, 1.0, (m, channels))
-    f32 = lambda a: np.ascontiguousarray(a, dtype=np.float32)  # noqa: E731
-    return (f32(means), f32(quats), f32(scales), f32(opacities), f32(features)), camera
-
-
-def clean_scenes(seed, count, m, width, height, channels, **kwargs):
-    """`count` random scenes (random_scene(..., **kwargs)) whose reference render takes no decision
-    within float32 rounding of its threshold (see rasterize_reference's margins), with the
-    reference's images. The few scenes that do (a few percent) are discarded."""
-    rng = np.random.default_rng(seed)
-    scenes = []
-    for _ in range(20 * count):
-        arrays, camera = random_scene(rng, m, width, height, channels, **kwargs)
-        margins = {}
-        ref = rasterize_reference(*arrays, camera, margins=margins)
-        if (margins["footprint"] > 1e-6 and margins["power"] > 1e-5 and margins["alpha"] > 1e-5
-                and margins["stop"] > 1e-4):
-            scenes.append((arrays, camera, ref))
-            if len(scenes) == count:
-                return scenes
-    raise AssertionError("could not draw clean random scenes")
 
 
 @pytest.mark.parametrize("size, channels, m, seed", [
@@ -84,7 +27,7 @@ def clean_scenes(seed, count, m, width, height, channels, **kwargs):
     ((50, 37), 1, 40, 4),
     ((33, 70), 4, 150, 5),
 ])
-def test_matches_reference(size, channels, m, seed):
+def test_matches_oracle(size, channels, m, seed):
     for arrays, camera, (ref_f, ref_a, ref_d) in clean_scenes(seed, 3, m, *size, channels):
         f, a, d = rasterize(*arrays, camera)
         assert f.shape == (camera.height, camera.width, channels) and f.dtype == np.float32
@@ -97,7 +40,7 @@ def test_matches_reference(size, channels, m, seed):
         assert np.all(d[a == 0] == 0)
 
 
-def test_matches_reference_deep():
+def test_matches_oracle_deep():
     """Opaque, many-layered scenes: most pixels reach the transmittance stop, and the final
     transmittance (>= 1e-4 where the stop was taken) matches the reference's to 1% wherever it is
     below 1e-2."""
@@ -149,7 +92,7 @@ def gaussians(rows, channels=3):
     return rows[:, :3], quats, scales, rows[:, 4], features
 
 
-@pytest.mark.parametrize("render", [rasterize, rasterize_reference])
+@pytest.mark.parametrize("render", [rasterize, rasterize_oracle])
 @pytest.mark.parametrize("opacity", [0.7, 0.995])
 def test_single_isotropic_gaussian(render, opacity):
     z, s, f = 2.0, 0.04, 0.8
@@ -165,7 +108,7 @@ def test_single_isotropic_gaussian(render, opacity):
     assert A[22, 30] == pytest.approx(opacity * np.exp(-1.0 / var), abs=1e-6)
 
 
-@pytest.mark.parametrize("render", [rasterize, rasterize_reference])
+@pytest.mark.parametrize("render", [rasterize, rasterize_oracle])
 def test_footprint_cuts_at_radius(render):
     """r = ceil(3 sqrt(lambda_max)), lambda_max = m + sqrt(max(0.1, m^2 - det)) = var + sqrt(0.1) for an
     isotropic 2D covariance; pixels beyond r get nothing even where alpha would be >= 1/255."""
@@ -181,7 +124,7 @@ def test_footprint_cuts_at_radius(render):
     assert A[23 + r + 1, 31] == 0 and A[23 + r, 31] > 0
 
 
-@pytest.mark.parametrize("render", [rasterize, rasterize_reference])
+@pytest.mark.parametrize("render", [rasterize, rasterize_oracle])
 def test_culled_gaussians_render_nothing(render):
     rows = [(0, 0, -2.0, 0.5, 0.9, 1.0),  # behind the camera
             (0, 0, 0.01, 0.5, 0.9, 1.0),  # on the near plane (z <= 0.01 is culled)
@@ -193,7 +136,7 @@ def test_culled_gaussians_render_nothing(render):
     assert A[23, 31] == pytest.approx(0.9, abs=1e-6)  # just beyond the near plane
 
 
-@pytest.mark.parametrize("render", [rasterize, rasterize_reference])
+@pytest.mark.parametrize("render", [rasterize, rasterize_oracle])
 def test_depth_order_not_input_order(render):
     near = (0, 0, 2.0, 0.05, 0.6, 1.0)
     far = (0, 0, 3.0, 0.075, 0.5, -2.0)  # same footprint as `near`
@@ -208,7 +151,7 @@ def test_depth_order_not_input_order(render):
     assert D[23, 31] == pytest.approx((w_near * 2.0 + w_far * 3.0) / (w_near + w_far), abs=1e-5)
 
 
-@pytest.mark.parametrize("render", [rasterize, rasterize_reference])
+@pytest.mark.parametrize("render", [rasterize, rasterize_oracle])
 def test_equal_depth_lower_index_first(render):
     first, second = (0, 0, 2.0, 0.05, 0.6, 1.0), (0, 0, 2.0, 0.05, 0.5, -2.0)
     F, _, _ = render(*gaussians([first, second]), axis_camera())
@@ -217,7 +160,7 @@ def test_equal_depth_lower_index_first(render):
     assert F[23, 31, 0] == pytest.approx(0.5 * -2.0 + 0.5 * 0.6 * 1.0, abs=1e-6)
 
 
-@pytest.mark.parametrize("render", [rasterize, rasterize_reference])
+@pytest.mark.parametrize("render", [rasterize, rasterize_oracle])
 def test_transmittance_stop(render):
     # Opacity 0.95 at the centre: T = 0.05, 0.0025, 1.25e-4, then 6.25e-6 < 1e-4, so the fourth
     # Gaussian and all behind it are not added; the pixel keeps T = 1.25e-4 >= 1e-4.
@@ -241,7 +184,7 @@ def test_transmittance_stop(render):
 def test_empty_and_dtypes():
     cam = axis_camera(20, 10)
     empty = np.zeros((0, 3)), np.zeros((0, 4)), np.zeros((0, 3)), np.zeros(0), np.zeros((0, 5))
-    for render in (rasterize, rasterize_reference):
+    for render in (rasterize, rasterize_oracle):
         F, A, D = render(*empty, cam)
         assert F.shape == (10, 20, 5) and not F.any() and not A.any() and not D.any()
     args = gaussians([(0, 0, 2.0, 0.05, 0.6, 1.0)])  # float64 inputs are accepted
@@ -253,7 +196,7 @@ def test_empty_and_dtypes():
 def test_projection_is_pinhole():
     rng = np.random.default_rng(7)
     (means, quats, scales, _, _), camera = random_scene(rng, 100, 64, 48, 3)
-    p = project_reference(means, quats, scales, camera)
+    p = project_oracle(means, quats, scales, camera)
     cam = means.astype(np.float64) @ camera.R.T + camera.t
     front = cam[:, 2] > 0.01
     np.testing.assert_array_equal(p.visible, front)  # the blur keeps every determinant positive
@@ -273,7 +216,7 @@ def test_projection_jacobian_clamp():
     """A Gaussian far to the side: its 2D covariance uses x/z clamped to 1.3 tan(half fov)."""
     camera = axis_camera()
     x, z, s = 3.0, 1.0, 0.1
-    p = project_reference([[x, 0, z]], [[1, 0, 0, 0]], [[s, s, s]], camera)
+    p = project_oracle([[x, 0, z]], [[1, 0, 0, 0]], [[s, s, s]], camera)
     lim = (camera.width - camera.cx) / FX + 0.3 * camera.width / (2 * FX)
     J = np.array([[FX / z, 0, -FX * lim / z], [0, FX / z, 0]])
     cov = J @ (s * s * np.eye(3)) @ J.T + 0.3 * np.eye(2)

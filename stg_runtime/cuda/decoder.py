@@ -24,13 +24,16 @@ import math
 import numpy as np
 from numba import cuda
 
-from .camera import Camera
-from .cuda_launch import launch
-from .cuda_math import dmax, dmin
-from .decoder import Decoder
-from .projection import camera_params
-from .sh import degree_of, sh_colour_at
-from .splat_cuda import device_empty, simulated
+from ..camera import Camera
+from ..decoder import OnnxDecoder
+from ..model import sh_degree_of
+from ..onnx_mlp import mlp_weights
+from ..projection import camera_params
+from ..sh import sh_colour_at
+from .device import simulated
+from .launch import launch
+from .memory import device_empty
+from .minmax import dmax, dmin
 
 CUDA_PROVIDER = "CUDAExecutionProvider"
 
@@ -144,7 +147,7 @@ def _sh(coeffs, means, cam, out):
 def sh_colours(coeffs_d, means_d, camera: Camera, out=None):
     """Device (M, 3 K) SH coefficients (K = 1, 4, 9 or 16; layout of stg_runtime.sh) and (M, 3) means,
     seen from `camera` -> device (M, 3) float32 colours, as stg_runtime.sh.sh_colours."""
-    degree_of(coeffs_d.shape[1])
+    sh_degree_of(coeffs_d.shape[1])
     m = coeffs_d.shape[0]
     out = _out(out, (m, 3))
     if m:
@@ -168,7 +171,6 @@ class FusedDecoder:
     @classmethod
     def from_onnx(cls, onnx_bytes: bytes, activation: str):
         """A FusedDecoder, or None if the graph is not the 12 -> 6 -> 3 MatMul/Relu shape."""
-        from .onnx_mlp import mlp_weights
         weights = mlp_weights(onnx_bytes)
         if weights is None or len(weights) != 2 or weights[0].shape != (6, 12) or weights[1].shape != (3, 6):
             return None
@@ -206,7 +208,7 @@ def _preload_cuda_libraries() -> None:
 _PRELOADED: list = []
 
 
-def run_bound(decoder: Decoder, device_type: str, rows_ptr: int, rows: int, out_ptr: int) -> None:
+def run_bound(decoder: OnnxDecoder, device_type: str, rows_ptr: int, rows: int, out_ptr: int) -> None:
     """Run `decoder`'s session on buffers it does not own (onnxruntime IOBinding): float32 input
     (rows, channels) at address rows_ptr, float32 output (rows, 3) written at out_ptr; device_type
     "cuda" (device 0) or "cpu". The caller keeps both buffers alive and, for "cuda", synchronised."""
@@ -231,7 +233,7 @@ class OnnxDeviceDecoder:
         # near 1e-3, seen on an H100), the CPU decoder in float32.
         providers = (((CUDA_PROVIDER, {"use_tf32": "0"}), "CPUExecutionProvider") if self.on_device
                      else ("CPUExecutionProvider",))
-        self.decoder = Decoder(onnx_bytes, activation, providers=providers)
+        self.decoder = OnnxDecoder(onnx_bytes, activation, providers=providers)
         # onnxruntime falls back to the CPU when the CUDA provider cannot load (missing CUDA libraries).
         self.on_device = CUDA_PROVIDER in self.decoder.session.get_providers()
         self.sigmoid = activation == "sigmoid"

@@ -12,7 +12,7 @@ from stg_runtime.demo import random_model
 from stg_train.convert.cli import main
 from stg_train.convert.ply import read_ply, write_ply
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 COMMANDS = ["compress", "import-reference", "import-3dgs", "export-ply", "merge"]
 
 

@@ -1,17 +1,13 @@
 """stg_runtime.projection.footprint, run as plain Python (numba compiles the same function for the CPU
-and GPU splatters), against the float64 reference projection and a brute-force pixel test."""
+and GPU splatters), against the float64 oracle's projection and a brute-force pixel test."""
 from __future__ import annotations
-
-import sys
-from pathlib import Path
 
 import numpy as np
 
 from stg_runtime.projection import CAMERA_PARAMS, camera_params, footprint
-from stg_runtime.splat_reference import MAX_ALPHA, MIN_ALPHA, project_reference
+from stg_runtime.spec import MAX_ALPHA, MIN_ALPHA, project_oracle
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from test_splat import random_scene  # noqa: E402
+from tests.scenes import random_scene
 
 
 def test_camera_params_layout():
@@ -31,7 +27,7 @@ def test_footprint_matches_the_reference_and_covers_every_pixel_it_can_reach():
     rng = np.random.default_rng(5)
     W, H = 64, 48
     (means, quats, scales, opacities, _), camera = random_scene(rng, 300, W, H, 3, opacity=(0.0, 0.3))
-    ref = project_reference(means, quats, scales, camera)
+    ref = project_oracle(means, quats, scales, camera)
     cam = camera_params(camera)
     px, py = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
     drawn = empty = 0

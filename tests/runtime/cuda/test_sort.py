@@ -1,4 +1,4 @@
-"""stg_runtime.sort_cuda (device exclusive scan and stable LSD radix sort) against numpy: np.cumsum and
+"""stg_runtime.cuda.sort (device exclusive scan and stable LSD radix sort) against numpy: np.cumsum and
 np.argsort(kind="stable"); stability is checked by carrying the original indices as the values.
 
 Without a GPU the tests run in numba's CUDA simulator, which must be enabled before numba.cuda is first
@@ -15,8 +15,8 @@ import os
 import numpy as np
 import pytest
 
-from stg_runtime import sort_cuda
-from stg_runtime.splat_cuda import gpu_available
+from stg_runtime.cuda import sort as sort_cuda
+from stg_runtime.cuda.device import gpu_available
 
 SIM = os.environ.get("NUMBA_ENABLE_CUDASIM") == "1"
 GPU = not SIM and gpu_available()

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from stg_runtime import Camera
-from stg_runtime.decoder import Decoder, lite_colour
+from stg_runtime.decoder import OnnxDecoder, lite_colour
 from stg_runtime.onnx_mlp import mlp_to_onnx
 
 
@@ -32,7 +32,7 @@ def test_decoder_matches_numpy_mlp(camera, activation, hidden):
     rng = np.random.default_rng(hidden)
     weights = [rng.standard_normal((hidden, 12)).astype(np.float32), rng.standard_normal((3, hidden)).astype(np.float32)]
     feats = rng.standard_normal((16, 24, 9)).astype(np.float32)
-    dec = Decoder(mlp_to_onnx(weights), activation)
+    dec = OnnxDecoder(mlp_to_onnx(weights), activation)
     got = dec(feats, camera)
     want = numpy_decoder(feats.astype(np.float64), camera, weights, activation)
     assert got.shape == (16, 24, 3) and got.dtype == np.float32
@@ -45,7 +45,7 @@ def test_three_layer_decoder_with_other_channel_count(camera):
     weights = [rng.standard_normal((8, 10)).astype(np.float32), rng.standard_normal((8, 8)).astype(np.float32),
                rng.standard_normal((3, 8)).astype(np.float32)]
     feats = rng.standard_normal((16, 24, 7)).astype(np.float32)
-    got = Decoder(mlp_to_onnx(weights), "sigmoid")(feats, camera)
+    got = OnnxDecoder(mlp_to_onnx(weights), "sigmoid")(feats, camera)
     np.testing.assert_allclose(got, numpy_decoder(feats.astype(np.float64), camera, weights, "sigmoid"), atol=2e-5)
 
 
@@ -58,12 +58,12 @@ def test_torch_exported_decoder_runs(camera, tmp_path):
                       dynamic_axes={"x": {0: "P"}, "y": {0: "P"}})
     weights = [mlp[0].weight.detach().numpy(), mlp[2].weight.detach().numpy()]
     feats = np.random.default_rng(2).standard_normal((16, 24, 9)).astype(np.float32)
-    got = Decoder(path.read_bytes(), "sigmoid")(feats, camera)
+    got = OnnxDecoder(path.read_bytes(), "sigmoid")(feats, camera)
     np.testing.assert_allclose(got, numpy_decoder(feats.astype(np.float64), camera, weights, "sigmoid"), atol=2e-5)
 
 
 def test_wrong_channel_count_is_refused(camera):
-    dec = Decoder(mlp_to_onnx([np.ones((6, 12), np.float32), np.ones((3, 6), np.float32)]), "sigmoid")
+    dec = OnnxDecoder(mlp_to_onnx([np.ones((6, 12), np.float32), np.ones((3, 6), np.float32)]), "sigmoid")
     with pytest.raises(ValueError, match="feature channels"):
         dec(np.zeros((16, 24, 3), np.float32), camera)
 

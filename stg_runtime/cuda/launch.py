@@ -3,14 +3,12 @@
     launch(kernel, griddim, blockdim, *args)      same as kernel[griddim, blockdim](*args)
 
 A plain numba launch types every argument, picks the compiled overload and converts each array into its
-kernel parameters: 17 to 32 us of Python for a kernel of one array argument, 33 to 68 us for five
-(numba-cuda 0.30, on the host CPUs of an H100 and of two H200 machines), more than most of the
-splatter's kernels take to run. `launch` does that work once per kernel, launch shape and set of
-arrays (recognised by identity, so callers keep their buffers from frame to frame) and scalar types,
-records the parameters numba passes to cuda.core's launch, and afterwards replays that launch directly
-(6 to 15 us on the same machines). Scalar arguments are converted again only when their values change:
-with the ctypes types numba gave their parameters when these reproduce numba's conversion, else by
-numba (a tuple argument must keep its element types).
+kernel parameters, in Python, which can take longer than the kernel runs (docs/gpu.md has the measured
+costs). `launch` does that work once per kernel, launch shape and set of arrays (recognised by
+identity, so callers keep their buffers from frame to frame) and scalar types, records the parameters
+numba passes to cuda.core's launch, and afterwards replays that launch directly. Scalar arguments are
+converted again only when their values change: with the ctypes types numba gave their parameters when
+these reproduce numba's conversion, else by numba (a tuple argument must keep its element types).
 
 This relies on numba-cuda's internals (cuda.core launches, the compiled kernel's `_prepare_args`), and
 recording swaps numba-cuda's launch function for a moment (record from one thread at a time). Where
@@ -98,7 +96,7 @@ def _rebuild(entry: _Prepared, params, args):
                 new = []
                 entry.compiled._prepare_args(entry.compiled.argument_types[i], value, entry.stream, [], new)
             if len(new) != stop - start:
-                raise RuntimeError("cuda_launch: a scalar argument changed its parameter count")
+                raise RuntimeError("cuda.launch: a scalar argument changed its parameter count")
             params[start:stop] = new
         scalars.append((i, start, stop, value, converters))
     entry.params, entry.scalars = params, scalars

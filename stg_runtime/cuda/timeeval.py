@@ -1,4 +1,4 @@
-"""Time evaluation on the GPU (numba.cuda): stg_runtime.timeeval.evaluate's formulas, one thread per
+"""Time evaluation on the GPU (numba.cuda): stg_runtime.timeeval's formulas, one thread per
 Gaussian, on a segment uploaded once (DeviceSegment).
 
 Unlike timeeval.evaluate nothing is compacted: all N Gaussians are returned, those whose temporal
@@ -10,9 +10,9 @@ from __future__ import annotations
 import numpy as np
 from numba import cuda
 
-from .cuda_launch import launch
-from .model import Segment
-from .timeeval import gaussian_at, opacity_at, time_channels
+from ..model import Segment, time_channels
+from ..timeeval import gaussian_at, opacity_at
+from .launch import launch
 
 
 _opacity_at = cuda.jit(device=True, inline=True)(opacity_at)

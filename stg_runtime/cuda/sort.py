@@ -10,7 +10,7 @@ sum it is built on.
         an optional (n,) device array (the splatter's int32 ids) that moves with its key. Returns new
         device arrays; the inputs are not modified. Stable: equal keys keep their input order.
 
-Host arrays are accepted too (copied to the device). stg_runtime.splat_cuda sorts its depth keys and
+Host arrays are accepted too (copied to the device). stg_runtime.cuda.splat sorts its depth keys and
 tile keys (keys only) with CuPy's sort when CuPy is there, else with radix_sort; it needs no scan of
 its own (exclusive_scan is the radix sort's scan, exposed so that it is tested on its own). These
 replace a bitonic sort (O(n log^2 n) work, one launch per step) and a Hillis-Steele scan over the

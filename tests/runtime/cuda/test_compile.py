@@ -1,6 +1,6 @@
 """Every numba.cuda kernel compiles for the CUDA target (typing and lowering to PTX), without a GPU:
-the check the simulator-run kernel tests (tests/test_splat_cuda.py) cannot make. Skipped where NVIDIA's
-NVVM library is not installed (a CUDA toolkit, or numba-cuda's [cu12]/[cu13] extra, brings it)."""
+the check the simulator-run kernel tests (tests/runtime/cuda/test_kernels.py) cannot make. Skipped
+where NVIDIA's NVVM library is not installed (a CUDA toolkit, or numba-cuda's [cu12]/[cu13] extra, brings it)."""
 from __future__ import annotations
 
 import os
@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[3]
 
 
 def test_every_kernel_compiles_to_ptx():

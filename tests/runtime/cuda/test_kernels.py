@@ -1,5 +1,6 @@
-"""The numba.cuda splatter (stg_runtime.splat_cuda) and Player(device="cuda") against the float64
-reference (stg_runtime.splat_reference), the CPU player and onnxruntime's decoder.
+"""Every kernel of stg_runtime.cuda (splat, sort choice, time evaluation, decoders) and
+Player(device="cuda") against the float64 oracle (stg_runtime.spec), the CPU player and onnxruntime's
+decoder.
 
 Without a GPU the kernel tests run in numba's CUDA simulator, which must be enabled before numba.cuda is
 first imported: test_kernels_under_simulator runs this file again in a subprocess with
@@ -9,23 +10,21 @@ numba sees a GPU the same tests run directly, on larger scenes, and the subproce
 from __future__ import annotations
 
 import os
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from stg_runtime import Player
+from stg_runtime.cuda import device
+from stg_runtime.cuda import splat as splat_cuda
+from stg_runtime.cuda.memory import Workspace
 from stg_runtime.demo import demo_model, random_model
-from stg_runtime.splat_reference import rasterize_reference
+from stg_runtime.spec import rasterize_oracle
+
+from tests.scenes import clean_scenes
 
 SIM = os.environ.get("NUMBA_ENABLE_CUDASIM") == "1"
-if SIM:
-    from stg_runtime import splat_cuda
-    GPU = False
-else:
-    from stg_runtime import splat_cuda
-    GPU = splat_cuda.gpu_available()
+GPU = device.gpu_available()
 RUN = SIM or GPU
 needs_kernels = pytest.mark.skipif(not RUN, reason="no GPU here: these run in the simulator subprocess "
                                                    "(test_kernels_under_simulator)")
@@ -36,8 +35,6 @@ M = 30 if SIM else 400
 
 
 def _scene(seed, m, channels, **kwargs):
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from test_splat import clean_scenes
     (scene,) = clean_scenes(seed, 1, m, W, H, channels, **kwargs)
     return scene
 
@@ -62,7 +59,7 @@ def _assert_matches(got, ref):
     (3, 7, 16, {"opacity": (0.6, 1.0), "size": (2.0, 10.0)}),  # opaque: pixels stop (T < 1e-4)
     (17, 3, 16, {"opacity": (0.6, 1.0), "size": (1.0, 8.0)}),  # more channels than one pass holds
 ])
-def test_kernels_match_reference(channels, seed, tile_size, kwargs):
+def test_kernels_match_oracle(channels, seed, tile_size, kwargs):
     arrays, camera, ref = _scene(seed, M, channels, **kwargs)
     got = splat_cuda.rasterize(*arrays, camera, tile_size=tile_size)
     _assert_matches(got, ref)
@@ -74,10 +71,10 @@ def test_equal_depths_composite_lower_index_first():
     means, quats, scales, opacities, features = arrays
     twice = [np.concatenate([a, a]) for a in (means, quats, scales, opacities)]
     twice.append(np.concatenate([features, -features]))  # the copies differ only in colour
-    ref = rasterize_reference(*twice, camera)
+    ref = rasterize_oracle(*twice, camera)
     got = splat_cuda.rasterize(*twice, camera)
     _assert_matches(got, ref)
-    swapped = rasterize_reference(*twice[:4], np.concatenate([-features, features]), camera)
+    swapped = rasterize_oracle(*twice[:4], np.concatenate([-features, features]), camera)
     assert np.abs(swapped[0] - ref[0]).max() > 0.1  # the order of the tied pairs shows in the image
 
 
@@ -87,7 +84,7 @@ def test_device_inputs_outputs_and_tile_size():
     arrays, camera, ref = _scene(4, M, 9)
     on_device = [cuda.to_device(a) for a in arrays]
     f, a, d = splat_cuda.rasterize(*on_device, camera, tile_size=16, out="device")
-    assert splat_cuda.is_device_array(f) and f.shape == (H, W, 9)
+    assert device.is_device_array(f) and f.shape == (H, W, 9)
     _assert_matches((f.copy_to_host(), a.copy_to_host(), d.copy_to_host()), ref)
     # Every per-pixel decision is the pixel's own: the tiling changes nothing, bit for bit.
     f5, a5, d5 = splat_cuda.rasterize(*arrays, camera, tile_size=5)
@@ -99,11 +96,11 @@ def test_device_inputs_outputs_and_tile_size():
 
 @needs_kernels
 def test_device_sorts_agree():
-    """CuPy's sort and sort_cuda's radix sort give the same image, bit for bit (on a GPU with CuPy)."""
+    """CuPy's sort and cuda.sort's radix sort give the same image, bit for bit (on a GPU with CuPy)."""
     arrays, camera, ref = _scene(9, M, 3, opacity=(0.3, 0.9))
     with pytest.raises(ValueError, match="sort must be one of"):
         splat_cuda.rasterize(*arrays, camera, sort="bitonic")
-    if splat_cuda._cupy() is None:
+    if device.cupy() is None:
         with pytest.raises(RuntimeError, match="CuPy is not installed"):
             splat_cuda.rasterize(*arrays, camera, sort="cupy")
         return
@@ -133,7 +130,7 @@ def test_stage_seconds_times_each_step_without_changing_the_image():
 
 @needs_kernels
 def test_workspace_keeps_its_buffers_and_changes_nothing_in_the_images():
-    ws = splat_cuda.Workspace()
+    ws = Workspace()
     small = _scene(11, M // 3, 3)
     big = _scene(12, M, 3, size=(4.0, 12.0))  # at tile_size 2 many more tile entries: the key buffer grows
     capacity = []
@@ -154,8 +151,8 @@ def test_workspace_keeps_its_buffers_and_changes_nothing_in_the_images():
 @needs_kernels
 def test_player_cuda_follows_a_moving_camera_and_time():
     """One player, a new camera and time every frame (the camera and time reach the kernels by value:
-    on a GPU these are replayed launches with new scalars, see stg_runtime.cuda_launch)."""
-    from stg_runtime import cuda_launch
+    on a GPU these are replayed launches with new scalars, see stg_runtime.cuda.launch)."""
+    from stg_runtime.cuda import launch as cuda_launch
     from stg_runtime.camera import orbit
     model = random_model(M, "full", width=W, height=H, radius_px=(1.0, 6.0))
     cameras = orbit(model.cameras, 3)
@@ -193,13 +190,13 @@ def _other_decoder(seed=0, hidden=8):
 def test_device_decoders_match_onnxruntime_on_the_host():
     from numba import cuda
 
-    from stg_runtime.decoder import Decoder
-    from stg_runtime.decoder_cuda import FusedDecoder, OnnxDeviceDecoder
+    from stg_runtime.decoder import OnnxDecoder
+    from stg_runtime.cuda.decoder import FusedDecoder, OnnxDeviceDecoder
     segment = demo_model("full", num_frames=2).segments[0]
     arrays, camera, _ = _scene(6, M, 9)
     features = splat_cuda.rasterize(*arrays, camera)[0] * 3.0  # larger features: the ReLUs matter
     features_d = cuda.to_device(features)
-    want = Decoder(segment.decoder, segment.activation)(features, camera)
+    want = OnnxDecoder(segment.decoder, segment.activation)(features, camera)
     assert want.std() > 0.01
     onnx = OnnxDeviceDecoder(segment.decoder, segment.activation)  # the fused decoder's reference
     np.testing.assert_allclose(onnx(features_d, camera).copy_to_host(), want, atol=1e-6, rtol=0)
@@ -211,18 +208,18 @@ def test_device_decoders_match_onnxruntime_on_the_host():
     other = _other_decoder()
     assert FusedDecoder.from_onnx(other, "sigmoid") is None
     np.testing.assert_allclose(OnnxDeviceDecoder(other, "clamp")(features_d, camera).copy_to_host(),
-                               Decoder(other, "clamp")(features, camera), atol=1e-6, rtol=0)
+                               OnnxDecoder(other, "clamp")(features, camera), atol=1e-6, rtol=0)
     with pytest.raises(ValueError, match="expects 9 feature channels, got 6"):
         onnx(cuda.to_device(np.zeros((2, 3, 6), np.float32)), camera)
 
 
 @needs_kernels
-def test_sh_colours_match_reference():
+def test_sh_colours_match_oracle():
     from numba import cuda
 
     from stg_runtime.camera import Camera
-    from stg_runtime.decoder_cuda import sh_colours
-    from stg_runtime.sh import sh_colours_reference
+    from stg_runtime.cuda.decoder import sh_colours
+    from stg_runtime.spec import sh_colours_oracle
     rng = np.random.default_rng(3)
     means = rng.normal(size=(40, 3)).astype(np.float32)
     means[0] = [0.5, -1.0, 2.0]  # at the camera centre: the zero direction
@@ -232,7 +229,7 @@ def test_sh_colours_match_reference():
     for k in (1, 4, 9, 16):
         coeffs = rng.normal(0, 2.0, (40, 3 * k)).astype(np.float32)
         got = sh_colours(cuda.to_device(coeffs), cuda.to_device(means), camera).copy_to_host()
-        want = sh_colours_reference(coeffs, means, camera.center)
+        want = sh_colours_oracle(coeffs, means, camera.center)
         np.testing.assert_allclose(got, want, atol=1e-5, rtol=1e-6, err_msg=f"K = {k}")
         assert (want == 0).any() and (want > 0.5).any()  # some colours clamp at 0
     with pytest.raises(ValueError, match="not an SH layout"):
@@ -244,8 +241,8 @@ def test_onnxruntime_cuda_provider_decoder_on_gpu():
     """Where onnxruntime-gpu is installed, OnnxDeviceDecoder runs on the device buffers."""
     from numba import cuda
 
-    from stg_runtime.decoder import Decoder
-    from stg_runtime.decoder_cuda import OnnxDeviceDecoder, cuda_provider_available
+    from stg_runtime.decoder import OnnxDecoder
+    from stg_runtime.cuda.decoder import OnnxDeviceDecoder, cuda_provider_available
     if not cuda_provider_available():
         pytest.skip("onnxruntime without its CUDA provider (the onnxruntime-gpu package)")
     arrays, camera, _ = _scene(10, M, 9)
@@ -254,15 +251,15 @@ def test_onnxruntime_cuda_provider_decoder_on_gpu():
     decoder = OnnxDeviceDecoder(other, "sigmoid")
     assert decoder.on_device
     np.testing.assert_allclose(decoder(cuda.to_device(features), camera).copy_to_host(),
-                               Decoder(other, "sigmoid")(features, camera), atol=1e-5, rtol=0)
+                               OnnxDecoder(other, "sigmoid")(features, camera), atol=1e-5, rtol=0)
 
 
 def test_bound_session_run_matches_plain_run():
     """The IOBinding call the CUDA provider path makes, on host buffers with the CPU provider (the same
     binding; only the device type differs)."""
-    from stg_runtime.decoder import Decoder
-    from stg_runtime.decoder_cuda import run_bound
-    decoder = Decoder(_other_decoder(3), "sigmoid")
+    from stg_runtime.decoder import OnnxDecoder
+    from stg_runtime.cuda.decoder import run_bound
+    decoder = OnnxDecoder(_other_decoder(3), "sigmoid")
     rows = np.random.default_rng(2).normal(size=(50, 12)).astype(np.float32)
     out = np.full((50, 3), np.nan, np.float32)
     run_bound(decoder, "cpu", rows.ctypes.data, 50, out.ctypes.data)
@@ -274,7 +271,7 @@ def test_bound_session_run_matches_plain_run():
 @pytest.mark.parametrize("kind", ["lite", "full"])
 def test_time_evaluation_matches_cpu(kind):
     from stg_runtime.timeeval import evaluate
-    from stg_runtime.timeeval_cuda import DeviceSegment
+    from stg_runtime.cuda.timeeval import DeviceSegment
     segment = random_model(4 * M, kind, width=W, height=H).segments[0]
     segment.t_scale[::3] = 300.0  # a third of them are visible briefly only
     device_segment = DeviceSegment(segment)
@@ -304,11 +301,11 @@ def test_player_cuda_matches_cpu(kind):
         np.testing.assert_allclose(g, w, atol=TOL, rtol=0, err_msg=name)
     assert want.alpha.max() > 0.5
     if kind.startswith("full"):  # which decoder path ran
-        from stg_runtime.decoder_cuda import FusedDecoder, OnnxDeviceDecoder
+        from stg_runtime.cuda.decoder import FusedDecoder, OnnxDeviceDecoder
         ran = type(cuda_player._device_decoders[id(model.segments[0])])
         assert ran is (OnnxDeviceDecoder if kind == "full-unfused" else FusedDecoder)
     rgb = cuda_player.render(camera, 0.5 * model.duration, out="device")
-    assert splat_cuda.is_device_array(rgb)
+    assert device.is_device_array(rgb)
     np.testing.assert_allclose(rgb.copy_to_host(), want.rgb, atol=TOL, rtol=0)
 
 

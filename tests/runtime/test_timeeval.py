@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 
 from stg_runtime.model import Segment
-from stg_runtime.timeeval import MIN_ALPHA, evaluate, evaluate_reference
+from stg_runtime.spec import MIN_ALPHA, evaluate_oracle
+from stg_runtime.timeeval import evaluate
 
 
 def _segment(n=300, kind="full", p=3, q=1, seed=0):
@@ -20,7 +21,7 @@ def _segment(n=300, kind="full", p=3, q=1, seed=0):
 def test_matches_float64_formula(kind, p, q, tau):
     seg = _segment(kind=kind, p=p, q=q)
     got = evaluate(seg, tau)
-    ref = evaluate_reference(seg, tau)
+    ref = evaluate_oracle(seg, tau)
     keep = ref["opacities"] >= MIN_ALPHA
     np.testing.assert_array_equal(got.index, np.flatnonzero(keep))
     for name in ("means", "quats", "scales", "opacities", "features"):

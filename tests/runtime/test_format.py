@@ -206,7 +206,7 @@ def test_save_replaces_atomically_and_cleans_up_on_write_error(tmp_path, monkeyp
 
 def test_file_written_by_another_process(tmp_path):
     path = tmp_path / "other.stg"
-    code = (f"import sys; sys.path.insert(0, {os.path.dirname(__file__)!r}); import test_format as t; "
+    code = ("import tests.runtime.test_format as t; "
             f"t.stg.save(t.make_model(seed=5, segments=2), {str(path)!r}, encodings={{'features': 'u8'}})")
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
     here = stg.loads(stg.dumps(make_model(seed=5, segments=2), encodings={"features": "u8"}))

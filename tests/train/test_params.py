@@ -5,7 +5,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from stg_runtime.model import ATTRIBUTES, Segment  # noqa: E402
-from stg_runtime.timeeval import evaluate_reference  # noqa: E402
+from stg_runtime.spec import evaluate_oracle  # noqa: E402
 from stg_train.timeeval import evaluate, temporal_opacity, to_file_arrays  # noqa: E402
 
 
@@ -39,7 +39,7 @@ def test_matches_file_formula(full, tau):
     seg = Segment(0, 50, decoder=b"" if full else None, **arrays)
     for name, value in arrays.items():  # Segment stores float32; compare against the float64 values
         setattr(seg, name, value)
-    ref = evaluate_reference(seg, tau)
+    ref = evaluate_oracle(seg, tau)
     got = evaluate(raw, tau)
     for name in ("means", "quats", "scales", "opacities", "features"):
         np.testing.assert_allclose(getattr(got, name).detach().numpy(), ref[name], rtol=1e-10, atol=1e-10, err_msg=name)
