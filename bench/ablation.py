@@ -9,7 +9,7 @@ training time per variant beside the full model.
 Variants (TrainConfig settings): full; no-temporal-opacity (frozen temporal_opacity: opacity(t) = 1);
 no-motion (frozen motion = 0); no-rotation (frozen omega = 0); no-feature-splatting (the lite model:
 splatted base rgb, no view / time features, no decoder); no-guided (guided=False). Defaults are the
-demo's (stg_train.cli DEMO_DEFAULTS / DEMO_TRAINING: 12 cameras x 30 frames at 160x120, 1500 iterations,
+demo's (stg_train.pipeline DEMO_SCENE / DEMO_TRAINING: 12 cameras x 30 frames at 160x120, 1500 iterations,
 8000 initial points), about 15-20 min per variant on 2 idle CPU cores; `--iterations 500 --points 4000`
 took 11-16 min per variant on 2 cores shared with other jobs. Held-out figures use the trainer's renderer
 on the held-out camera at every frame (PSNR in dB; DSSIM1 = (1 - SSIM) / 2, scikit-image SSIM,
@@ -28,7 +28,7 @@ import stg_train  # noqa: F401  (first: it configures OpenMP before torch loads)
 import numpy as np
 import torch
 
-from stg_train.cli import DEMO_DEFAULTS, DEMO_TRAINING, ensure_demo_scene
+from stg_train.pipeline import DEMO_SCENE, DEMO_TRAINING, ensure_demo_scene
 from stg_train.data import load_n3v
 from stg_train.metrics import image_metrics
 from stg_train.trainer import Trainer, TrainConfig
@@ -54,7 +54,7 @@ def heldout(trainer: Trainer) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    d = DEMO_DEFAULTS
+    d = DEMO_SCENE
     ap.add_argument("--iterations", type=int, default=DEMO_TRAINING["iterations"])
     ap.add_argument("--points", type=int, default=DEMO_TRAINING["num_points"])
     ap.add_argument("--cameras", type=int, default=d["cameras"])

@@ -21,7 +21,7 @@ from pathlib import Path
 import stg_train  # noqa: F401  (first: it configures OpenMP before torch loads)
 from stg_runtime import format as stg_format
 from stg_runtime.player import Player
-from stg_train.cli import DEMO_TRAINING, ensure_demo_scene
+from stg_train.pipeline import DEMO_TRAINING, ensure_demo_scene
 from stg_train.convert.compress import PRESETS, compress_file
 from stg_train.data import load_n3v
 from stg_train.metrics import evaluate_player

@@ -132,7 +132,7 @@ def _gsplat_seconds(arrays, camera, repeats) -> float | None:
     """Median seconds of gsplat's rasterization of the same Gaussians (opacity-culled as ours), or None
     (with the reason printed) when gsplat or torch with CUDA is missing."""
     try:
-        from stg_train.splat_gsplat import rasterize_gsplat, unavailable_reason  # before torch (stg_train's rule)
+        from stg_train.render.gsplat_backend import rasterize_gsplat, unavailable_reason  # before torch (stg_train's rule)
         import torch
     except ImportError as e:
         print(f"(gsplat skipped: {e})")

@@ -26,7 +26,7 @@ from pathlib import Path
 import stg_train  # noqa: F401  (first: it configures OpenMP before torch loads)
 import torch
 
-from stg_train.cli import DEMO_TRAINING, ensure_demo_scene
+from stg_train.pipeline import DEMO_TRAINING, ensure_demo_scene
 from stg_train.data import load_n3v
 from stg_train.export import export_trainer
 from stg_train.metrics import evaluate_player

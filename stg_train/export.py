@@ -1,6 +1,6 @@
 """Trained parameters -> stg_runtime Model -> `.stg` file, checked against the runtime right away.
 
-The per-Gaussian attributes come from stg_train.timeeval.to_file_arrays (raw -> file parameters), the
+The per-Gaussian attributes come from stg_train.raw.to_file_arrays (raw -> file parameters), the
 decoder from stg_runtime.onnx_mlp.mlp_to_onnx, the file from stg_runtime.format.save. `export` then
 renders the held-out view with the trainer's torch splatter and with the runtime `Player` reading the
 written file, and raises ExportMismatch when the rgb images differ by more than the golden tolerance.
@@ -22,9 +22,9 @@ from stg_runtime.model import Model, Segment
 from stg_runtime.onnx_mlp import mlp_to_onnx
 from stg_runtime.player import Player
 
-from . import timeeval
 from .params import STGParams
-from .splat import rasterize
+from .raw import to_file_arrays
+from .render import rasterize
 
 #: The project's golden-image tolerance between two renders of one model (trainer vs runtime): rgb
 #: values may differ by at most GOLDEN_TOLERANCE, except a fraction GOLDEN_FRACTION of them, which may
@@ -75,7 +75,7 @@ def to_model(params: STGParams, cameras: list[Camera], fps: float, num_frames: i
 
     bounds: ((3,), (3,)) world box; default: the box of the Gaussians' centres. provenance: stored as is
     (tool, version, settings)."""
-    arrays = timeeval.to_file_arrays(params.raw)
+    arrays = to_file_arrays({k: v.detach().cpu().numpy() for k, v in params.raw.items()})
     decoder = None if params.decoder is None else mlp_to_onnx(params.decoder.weights())
     segment = Segment(start_frame, num_frames, decoder=decoder, activation="sigmoid", **arrays)
     if bounds is None:

@@ -1,22 +1,33 @@
-"""Image quality metrics for evaluation (numpy / scikit-image), as the paper's Sec. 6.1 defines them.
+"""Image quality metrics for evaluation (numpy; SSIM through scikit-image), as the paper's Sec. 6.1
+defines them, and the held-out evaluation of a model through the runtime Player.
 
 Images are float arrays (H, W, 3) with values in [0, 1]. The training loss has its own differentiable
-SSIM (stg_train.trainer.ssim); these are the reported figures.
+SSIM (stg_train.losses); these are the reported figures.
 """
 from __future__ import annotations
 
+import time
+
 import numpy as np
-from skimage.metrics import structural_similarity
+
+#: The figures of a held-out evaluation kept in metrics.json and printed by the command lines.
+HELDOUT_KEYS = ("psnr", "ssim", "dssim1", "dssim2", "fps", "images", "cameras")
+
+
+def psnr_of_mse(mse: float) -> float:
+    """PSNR in dB of a mean squared error of values in [0, 1] (peak 1); inf for mse 0."""
+    return float("inf") if mse <= 0 else float(-10.0 * np.log10(mse))
 
 
 def psnr(image: np.ndarray, reference: np.ndarray) -> float:
     """Peak signal-to-noise ratio in dB for images in [0, 1] (peak 1); inf for identical images."""
-    mse = float(np.mean((np.asarray(image, np.float64) - np.asarray(reference, np.float64)) ** 2))
-    return float("inf") if mse == 0 else -10.0 * np.log10(mse)
+    return psnr_of_mse(float(np.mean((np.asarray(image, np.float64) - np.asarray(reference, np.float64)) ** 2)))
 
 
 def ssim(image: np.ndarray, reference: np.ndarray, data_range: float = 1.0) -> float:
     """scikit-image's structural_similarity over the colour channels (its default 7x7 uniform window)."""
+    from skimage.metrics import structural_similarity
+
     return float(structural_similarity(np.asarray(image, np.float64), np.asarray(reference, np.float64),
                                        channel_axis=-1, data_range=data_range))
 
@@ -44,8 +55,6 @@ def evaluate_player(player, dataset, camera_indices=None, frames=None) -> dict:
     Returns {"psnr", "ssim", "dssim1", "dssim2"} means over the images, "fps" (images rendered per
     second of Player.render time, after one warm-up render), "images", "cameras" (names), "per_frame"
     (list of per-image figures with camera name and frame)."""
-    import time
-
     cams = dataset.test_cameras if camera_indices is None else list(camera_indices)
     start_frame = getattr(dataset, "start_frame", 0)  # a Dataset.frame_range view: its frame j is video frame start + j
     frames = list(range(dataset.num_frames)) if frames is None else list(frames)
@@ -63,3 +72,8 @@ def evaluate_player(player, dataset, camera_indices=None, frames=None) -> dict:
     means = {k: float(np.mean([r[k] for r in rows])) for k in ("psnr", "ssim", "dssim1", "dssim2")}
     return {**means, "fps": len(rows) / seconds if seconds > 0 else float("inf"), "images": len(rows),
             "cameras": [dataset.cameras[ci].name for ci in cams], "per_frame": rows}
+
+
+def heldout(result: dict) -> dict:
+    """The HELDOUT_KEYS of an evaluate_player result."""
+    return {k: result[k] for k in HELDOUT_KEYS}

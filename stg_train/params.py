@@ -1,6 +1,6 @@
 """The trainable Spacetime Gaussian parameters, raw as the reference implementation stores them.
 
-Per Gaussian (N rows; names and activations are those of stg_train.timeeval, which evaluates them):
+Per Gaussian (N rows; names and activations are those of stg_train.raw; gaussians_at evaluates them):
 
 | name          | shape      | meaning (raw)                                      | initial value                     |
 |---------------|------------|----------------------------------------------------|-----------------------------------|
@@ -15,7 +15,7 @@ Per Gaussian (N rows; names and activations are those of stg_train.timeeval, whi
 | t_center      | (N, 1)     | temporal centre (normalised time)                  | the point's frame time j / frames |
 | t_scale_raw   | (N, 1)     | opacity(t) ~ exp(-(dt / exp(t_scale_raw))^2)        | 0                                 |
 
-The full model adds the colour decoder (`Decoder`: 12 -> 6, ReLU, 6 -> 3, no biases, per pixel) and
+The full model adds the colour decoder (`DecoderMLP`: 12 -> 6, ReLU, 6 -> 3, no biases, per pixel) and
 rgb = sigmoid(F[0:3] + decoder([F[3:9], camera centre, ray direction])); the lite model's rgb is F[0:3]
 clamped to [0, 1] (formats/stg-v1.md, section 2).
 
@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -36,11 +37,11 @@ from torch import Tensor
 
 from stg_runtime.camera import Camera
 
-from . import timeeval
+from .raw import RAW_KEYS
 
 #: Per-Gaussian raw parameters, in a fixed order (optimizer groups follow it); lite models have no
 #: time_features.
-NAMES = timeeval.RAW_KEYS
+NAMES = RAW_KEYS
 #: Parameters that only matter for dynamics: frozen (not trained) in a static model.
 TIME_NAMES = ("motion", "omega", "time_features", "t_center", "t_scale_raw")
 #: Raw temporal scale of static models: exp(-(dt / e^10)^2) = 1 to float32 precision for |dt| <= 1.
@@ -49,6 +50,39 @@ KINDS = ("full", "lite")
 #: Time components that an ablation can switch off, and the raw parameters each keeps at its initial value.
 COMPONENTS = {"temporal_opacity": ("t_center", "t_scale_raw"), "motion": ("motion",), "rotation": ("omega",),
               "time_features": ("time_features",)}
+
+
+class Gaussians(NamedTuple):
+    """Static 3D Gaussians at one instant, as stg_train.render.rasterize takes them.
+    means (N, 3); quats (N, 4) unit wxyz; scales (N, 3); opacities (N,); features (N, C), C = 3 or 9."""
+
+    means: Tensor
+    quats: Tensor
+    scales: Tensor
+    opacities: Tensor
+    features: Tensor
+
+
+def temporal_opacity(raw: dict[str, Tensor], tau: float) -> Tensor:
+    """(N,) sigmoid(opacity_logit) * exp(-((tau - t_center) / exp(t_scale_raw))^2), differentiable in all three."""
+    dt = tau - raw["t_center"].reshape(-1)
+    s_t = torch.exp(raw["t_scale_raw"].reshape(-1))
+    return torch.sigmoid(raw["opacity_logit"].reshape(-1)) * torch.exp(-(dt / s_t) ** 2)
+
+
+def gaussians_at(raw: dict[str, Tensor], tau: float) -> Gaussians:
+    """The Gaussians of raw parameters (stg_train.raw's table) at normalised time tau. As in the
+    reference, dt = tau - t_center is detached for motion, rotation and the time features: only the
+    temporal opacity sends gradient to t_center."""
+    dt = (tau - raw["t_center"].reshape(-1)).detach()[:, None]  # (N, 1), no gradient to t_center
+    m = raw["motion"]
+    means = raw["xyz"] + dt * (m[:, 0:3] + dt * (m[:, 3:6] + dt * m[:, 6:9]))
+    q = raw["rotation"] + dt * raw["omega"]
+    quats = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    features = raw["features"]
+    if raw.get("time_features") is not None:
+        features = torch.cat([features, dt * raw["time_features"]], dim=-1)
+    return Gaussians(means, quats, torch.exp(raw["log_scale"]), temporal_opacity(raw, tau), features)
 
 
 def check_frozen(frozen) -> tuple[str, ...]:
@@ -91,7 +125,7 @@ class LearningRates:
         return LearningRates(**{k: (v * factor if k != "motion_factor" else v) for k, v in asdict(self).items()})
 
 
-class Decoder(torch.nn.Module):
+class DecoderMLP(torch.nn.Module):
     """The full model's colour decoder, applied per pixel: (P, 12) -> (P, 3), 12 -> 6 ReLU -> 3, no biases.
 
     Weights are initialised like torch's Linear / the reference's 1x1 Conv2d (Kaiming uniform).
@@ -125,7 +159,7 @@ class STGParams:
     """
 
     def __init__(self, raw: dict[str, Tensor], kind: str = "full", static: bool = False,
-                 decoder: Decoder | None = None, frozen=()):
+                 decoder: DecoderMLP | None = None, frozen=()):
         if kind not in KINDS:
             raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
         self.kind = kind
@@ -136,7 +170,7 @@ class STGParams:
             t.requires_grad_(self.trainable(name))
             self.raw[name] = t
         if kind == "full":
-            self.decoder = decoder if decoder is not None else Decoder()
+            self.decoder = decoder if decoder is not None else DecoderMLP()
             self.decoder.to(self.raw["xyz"].device)
         else:
             self.decoder = None
@@ -155,7 +189,7 @@ class STGParams:
                           torch.as_tensor(np.asarray(t_center), dtype=torch.float32), log_scale, kind, frozen)
         with torch.random.fork_rng():
             torch.manual_seed(seed)
-            decoder = Decoder() if kind == "full" else None
+            decoder = DecoderMLP() if kind == "full" else None
         return cls({k: v.to(device) for k, v in raw.items()}, kind, False, decoder, frozen)
 
     def new_rows(self, xyz: Tensor, rgb: Tensor, t_center: Tensor, opacity: float = 0.1) -> dict[str, Tensor]:
@@ -198,9 +232,9 @@ class STGParams:
 
     # -- evaluation -------------------------------------------------------------------------------
     def at(self, tau: float):
-        """The Gaussians at normalised time tau (stg_train.timeeval): means, quats, scales, opacities,
+        """The Gaussians at normalised time tau (gaussians_at): means, quats, scales, opacities,
         features, differentiable w.r.t. the raw parameters."""
-        return timeeval.evaluate(self.raw, tau)
+        return gaussians_at(self.raw, tau)
 
     def colour(self, features: Tensor, camera: Camera, rays: Tensor | None = None) -> Tensor:
         """Splatted features (H, W, C) -> rgb (H, W, 3). rays: view_inputs(camera), if precomputed."""
@@ -234,7 +268,7 @@ class STGParams:
     def from_state_dict(cls, state: dict, device="cpu") -> "STGParams":
         decoder = None
         if state["decoder"] is not None:
-            decoder = Decoder()
+            decoder = DecoderMLP()
             decoder.load_state_dict(state["decoder"])
         return cls({k: v.to(device) for k, v in state["raw"].items()}, state["kind"], state["static"], decoder,
                    state.get("frozen", ()))
@@ -291,94 +325,3 @@ def extent_of(cameras) -> float:
     centres = np.stack([c.center for c in cameras])
     radius = float(np.linalg.norm(centres - centres.mean(0), axis=1).max()) * 1.1
     return radius if radius > 0 else 1.0
-
-
-def _unproject(camera: Camera, u: np.ndarray, v: np.ndarray, depth: np.ndarray) -> np.ndarray:
-    """World points (..., 3) at camera-space depth `depth` through pixel centres (u + 0.5, v + 0.5)."""
-    return camera.unproject(u + 0.5, v + 0.5, depth)
-
-
-def _project(camera: Camera, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Pixel columns, rows (integer, nearest) and a bool mask of points in front and inside the image."""
-    uv, z = camera.project(xyz)
-    u, v = np.floor(uv[..., 0]).astype(np.int64), np.floor(uv[..., 1]).astype(np.int64)
-    ok = (z > 0) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
-    return np.clip(u, 0, camera.width - 1), np.clip(v, 0, camera.height - 1), ok
-
-
-def _box3(image: np.ndarray) -> np.ndarray:
-    """3x3 box blur of an (H, W, 3) image (edges replicated), against noise in colour matching."""
-    pad = np.pad(image, ((1, 1), (1, 1), (0, 0)), mode="edge")
-    h, w = image.shape[:2]
-    return sum(pad[dy:dy + h, dx:dx + w] for dy in range(3) for dx in range(3)) / 9.0
-
-
-def sample_view_volume(dataset, num_points: int, rng: np.random.Generator, min_views: float = 0.5,
-                       depth_candidates: int = 0):
-    """Initial points until SfM exists: sampled in the view volume of the training cameras.
-
-    Each point picks a training camera, a pixel and a depth in [near, far] of that camera
-    (dataset.bounds), and takes the pixel's colour in frame j of that camera, where j spreads the points
-    evenly over the frames (temporal centre j / num_frames, like the reference's per-frame SfM points).
-    Points seen by fewer than `min_views` of the training cameras are drawn again. The depth is uniform
-    when depth_candidates is 0; otherwise it is the most photo-consistent of `depth_candidates` depths
-    (uniform in 1/depth, jittered): the one whose projections into the other training cameras' frame j
-    have the colours closest to the source pixel's (a per-pixel plane sweep; 3x3-blurred frames).
-    Returns xyz (N, 3) float64, rgb (N, 3) float32 in [0, 1], t_center (N,) float32.
-    """
-    cams = [dataset.cameras[i] for i in dataset.train_cameras]
-    if dataset.bounds is None:
-        raise ValueError("sample_view_volume: the dataset has no near/far bounds")
-    bounds = np.asarray(dataset.bounds, dtype=np.float64)[dataset.train_cameras]
-    frames = np.arange(num_points) % dataset.num_frames
-    rng.shuffle(frames)
-    xyz = np.zeros((num_points, 3))
-    src = np.zeros(num_points, np.int64)
-    u, v = np.zeros(num_points, np.int64), np.zeros(num_points, np.int64)
-    todo = np.arange(num_points)
-    for _ in range(50):  # after 50 draws a point stays as drawn (a rig without a common view)
-        if todo.size == 0:
-            break
-        k = todo.size
-        src[todo] = rng.integers(0, len(cams), k)
-        u[todo], v[todo] = rng.integers(0, dataset.width, k), rng.integers(0, dataset.height, k)
-        depth = rng.uniform(bounds[src[todo], 0], bounds[src[todo], 1])
-        for c in np.unique(src[todo]):
-            m = todo[src[todo] == c]
-            xyz[m] = _unproject(cams[c], u[m], v[m], depth[src[todo] == c])
-        seen = sum(_project(cam, xyz[todo])[2].astype(int) for cam in cams)
-        todo = todo[seen < min_views * len(cams)]
-    rgb = np.zeros((num_points, 3), np.float32)
-    for j in range(dataset.num_frames):
-        in_frame = np.flatnonzero(frames == j)
-        if in_frame.size == 0:
-            continue
-        images = [dataset.image(i, j) for i in dataset.train_cameras]
-        rgb[in_frame] = np.stack([images[c][v[i], u[i]] for c, i in zip(src[in_frame], in_frame)])
-        if depth_candidates:
-            blurred = [_box3(im) for im in images]
-            for c in np.unique(src[in_frame]):
-                m = in_frame[src[in_frame] == c]
-                xyz[m] = _photo_consistent(cams, blurred, c, u[m], v[m], bounds[c], depth_candidates, rng)
-    return xyz, rgb, (frames / dataset.num_frames).astype(np.float32)
-
-
-def _photo_consistent(cams, images, c, u, v, near_far, candidates, rng) -> np.ndarray:
-    """(P, 3) points along the rays of pixels (u, v) of camera c at the candidate depth whose colours in
-    the other cameras' images best match camera c's (mean L1 over the views that see the point)."""
-    inv = np.linspace(1.0 / near_far[0], 1.0 / near_far[1], candidates)
-    step = abs(inv[1] - inv[0]) if candidates > 1 else 0.0
-    pts = _unproject(cams[c], u[:, None], v[:, None], 1.0 / inv[None, :])  # (P, D, 3)
-    ref = images[c][v, u][:, None, :]
-    cost = np.zeros(pts.shape[:2])
-    count = np.zeros(pts.shape[:2])
-    for k, cam in enumerate(cams):
-        if k == c:
-            continue
-        pu, pv, ok = _project(cam, pts)
-        cost += np.where(ok, np.abs(images[k][pv, pu] - ref).sum(-1), 0.0)
-        count += ok
-    cost = np.where(count > 0, cost / np.maximum(count, 1), np.inf)
-    best = inv[np.argmin(cost, axis=1)] + rng.uniform(-0.5, 0.5, len(u)) * step
-    best = np.clip(best, min(inv[0], inv[-1]), max(inv[0], inv[-1]))
-    return _unproject(cams[c], u, v, 1.0 / best)

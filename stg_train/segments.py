@@ -1,4 +1,5 @@
-"""Long videos: train consecutive time segments as independent models and merge them into one file.
+"""Long videos as consecutive segments: the plan (where the video is cut, which folder holds each
+segment, which segments are finished) that stg_train.pipeline.train_segments carries out.
 
 A video of F frames is cut into segments of `segment_frames` frames (the paper's 50); a last piece
 shorter than half a segment joins the segment before it, so no segment is a near-static sliver. Each
@@ -17,11 +18,11 @@ so runs into one OUT cannot mix segment lengths.
 from __future__ import annotations
 
 import json
-import os
-import sys
-from dataclasses import asdict
 from pathlib import Path
 from typing import NamedTuple, Sequence
+
+from stg_runtime import format as stg_format
+from stg_runtime.atomic import write_atomic
 
 PLAN_NAME = "plan.json"
 
@@ -76,7 +77,7 @@ def segment_dir(out, index: int, count: int) -> Path:
     return Path(out) / "segments" / f"{index:0{max(2, len(str(count - 1)))}d}"
 
 
-def _check_plan(out: Path, plan: list[Span], segment_frames: int) -> None:
+def check_plan(out: Path, plan: list[Span], segment_frames: int) -> None:
     """Record the plan in OUT/segments/plan.json, or refuse when OUT already holds another cut."""
     path = out / "segments" / PLAN_NAME
     wanted = {"num_frames": sum(s.count for s in plan), "segment_frames": segment_frames,
@@ -92,15 +93,11 @@ def _check_plan(out: Path, plan: list[Span], segment_frames: int) -> None:
                                f"every {segment_frames}: use the same --segment-frames and data, or another --out")
         return
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f"{PLAN_NAME}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(wanted) + "\n")
-    os.replace(tmp, path)
+    write_atomic(path, json.dumps(wanted) + "\n")
 
 
 def finished(folder: Path, span: Span) -> bool:
     """Whether `folder` holds a finished segment covering `span` (metrics.json and a matching model.stg)."""
-    from stg_runtime import format as stg_format
-
     if not (folder / "metrics.json").exists() or not (folder / "model.stg").exists():
         return False
     try:
@@ -110,7 +107,7 @@ def finished(folder: Path, span: Span) -> bool:
     return (model.start_frame, model.num_frames) == (span.start, span.count)
 
 
-def _pooled(results: Sequence[dict]) -> dict:
+def pooled(results: Sequence[dict]) -> dict:
     """One evaluate_player-style summary of several (means weighted by their image counts)."""
     images = sum(r["images"] for r in results)
     out = {k: float(sum(r[k] * r["images"] for r in results) / images) for k in ("psnr", "ssim", "dssim1", "dssim2")}
@@ -119,85 +116,8 @@ def _pooled(results: Sequence[dict]) -> dict:
     return {**out, "fps": images / seconds if seconds > 0 else float("inf"), "images": images, "cameras": cameras}
 
 
-def train_segments(dataset, out, config, segment_frames: int, indices: Sequence[int] | None = None,
-                   resume: bool = False, quiet: bool = False, check: bool = True) -> dict:
-    """Train the segments `indices` (default: all) of `dataset` cut every segment_frames frames into
-    OUT/segments/NN, then merge every segment into OUT/model.stg when all are finished, evaluate and
-    write OUT/metrics.json; returns the metrics ("missing_segments" lists the indices still to train).
-
-    resume: keep finished segments and continue an unfinished one from its checkpoint; otherwise the
-    chosen segments are trained afresh. Raises SegmentError for indices outside the plan or an OUT
-    cut differently, DataError for bad data (from the training runs).
-    """
-    from stg_runtime.player import Player
-
-    from .cli import run_training
-    from .convert.merge import merge_files
-    from .metrics import evaluate_player
-
-    out = Path(out)
-    plan = plan_segments(dataset.num_frames, segment_frames)
-    chosen = list(range(len(plan))) if indices is None else sorted(set(indices))
-    bad = [i for i in chosen if not 0 <= i < len(plan)]
-    if bad:
-        raise SegmentError(f"--segments {','.join(map(str, bad))}: the {dataset.num_frames}-frame video has "
-                           f"{len(plan)} segment{'s' if len(plan) > 1 else ''} of {segment_frames} frames "
-                           f"(indices 0-{len(plan) - 1})")
-    _check_plan(out, plan, segment_frames)
-    folders = [segment_dir(out, s.index, len(plan)) for s in plan]
-    for i in chosen:
-        span, folder = plan[i], folders[i]
-        if resume and finished(folder, span):
-            if not quiet:
-                print(f"segment {i} ({span.frames()}): finished, keeping {folder / 'model.stg'}", file=sys.stderr)
-            continue
-        if not resume:
-            for name in ("metrics.json", "model.stg"):  # the marks of a finished segment
-                (folder / name).unlink(missing_ok=True)
-        if not quiet:
-            print(f"segment {i} of 0-{len(plan) - 1} ({span.frames()}) -> {folder}", file=sys.stderr)
-        run_training(dataset.frame_range(span.start, span.count), folder, config, resume, quiet, check)
-
-    done = [s for s, f in zip(plan, folders) if finished(f, s)]
-    missing = [s for s in plan if s not in done]
-    per_segment, heldouts = [], []
-    for s in done:
-        m = json.loads((folders[s.index] / "metrics.json").read_text())
-        heldouts.append(m["heldout"])
-        per_segment.append({"index": s.index, "start_frame": s.start, "num_frames": s.count,
-                            "folder": str(folders[s.index]), "iterations": m["iterations"],
-                            "train_seconds": m["train_seconds"], "gaussians": m["gaussians"],
-                            "file_bytes": m["file_bytes"], "heldout_psnr": m["heldout"]["psnr"],
-                            "export_check": m["export_check"]})
-    model_path = None
-    if not missing:
-        model_path = out / "model.stg"
-        try:
-            merge_files([folders[s.index] / "model.stg" for s in plan], model_path,
-                        provenance={"tool": "stg-train", "segment_frames": segment_frames})
-        except ValueError as e:
-            raise SegmentError(f"cannot merge the segments of {out / 'segments'}: {e}") from None
-        heldout = evaluate_player(Player(model_path, device="cpu"), dataset)
-        file_bytes = model_path.stat().st_size
-    else:  # the finished segments' own evaluations (of the same files, over their frames), pooled
-        heldout = _pooled(heldouts)
-        file_bytes = sum(p["file_bytes"] for p in per_segment)
-        print(missing_message(out, plan, missing, segment_frames, dataset.path), file=sys.stderr)
-    metrics = {"heldout": {k: heldout[k] for k in ("psnr", "ssim", "dssim1", "dssim2", "fps", "images", "cameras")},
-               "model": None if model_path is None else str(model_path),
-               "segment_frames": segment_frames, "segments": per_segment,
-               "missing_segments": [s.index for s in missing],
-               "iterations": sum(p["iterations"] for p in per_segment),
-               "train_seconds": sum(p["train_seconds"] for p in per_segment),
-               "gaussians": sum(p["gaussians"] for p in per_segment), "file_bytes": file_bytes,
-               "export_check": _worst_check(per_segment), "settings": asdict(config)}
-    tmp = out / "metrics.json.tmp"
-    tmp.write_text(json.dumps(metrics, indent=1) + "\n")
-    tmp.replace(out / "metrics.json")
-    return metrics
-
-
-def _worst_check(per_segment: list[dict]) -> dict | None:
+def worst_check(per_segment: list[dict]) -> dict | None:
+    """The worst export check over the segments' metrics (None when none was checked)."""
     checks = [p["export_check"] for p in per_segment if p["export_check"]]
     if not checks:
         return None

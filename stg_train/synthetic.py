@@ -21,13 +21,13 @@ then goes through a small Gaussian "lens" blur (`blur`, 1 px by default).
 from __future__ import annotations
 
 import json
-import os
 import re
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from stg_runtime.atomic import write_atomic
 from stg_runtime.camera import Camera
 
 __all__ = ["SyntheticScene", "write_n3v", "OBJECT_NAMES", "llff_pose"]
@@ -503,7 +503,5 @@ def write_n3v(out_dir, scene: SyntheticScene, num_cameras: int = 12, num_frames:
     meta = dict(scene.settings(), fps=float(fps), num_frames=int(num_frames), num_cameras=int(num_cameras),
                 width=int(width), height=int(height), focal=float(cams[0].fx), supersample=int(supersample),
                 video_codec=VIDEO_CODEC, png=bool(png), held_out="cam00")
-    tmp = out / "scene.json.tmp"
-    tmp.write_text(json.dumps(meta, indent=2) + "\n")
-    os.replace(tmp, out / "scene.json")
+    write_atomic(out / "scene.json", json.dumps(meta, indent=2) + "\n")
     return cams

@@ -1,8 +1,8 @@
 """The training loop: batches of views at one time, loss, Adam, density control, checkpoints, progress.
 
 Each step draws one frame j (normalised time tau = j / num_frames) and `batch` training cameras, renders
-them with the configured splatter (stg_train.splat.rasterize), and minimises 0.8 L1 + 0.2 (1 - SSIM)
-(SSIM with 3DGS's 11x11 Gaussian window, sigma 1.5) averaged over the views. Ground-truth frames stay on the CPU as uint8 (the dataset's
+them with the configured splatter (stg_train.render.rasterize), and minimises 0.8 L1 + 0.2 (1 - SSIM)
+(stg_train.losses) averaged over the views; the strategies (stg_train.strategy) act around backward(). Ground-truth frames stay on the CPU as uint8 (the dataset's
 memory map) and only the batch's frames move to the device, so memory does not grow with the frame count.
 
 A checkpoint holds everything the next step depends on (parameters, Adam state, strategy state, the
@@ -11,8 +11,6 @@ checkpoint reaches the same state as an uninterrupted run (on the same device an
 """
 from __future__ import annotations
 
-import math
-import os
 import random
 import time
 from dataclasses import asdict, dataclass, field, fields
@@ -21,17 +19,18 @@ from typing import Callable
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
+from stg_runtime.atomic import atomic_output
 from stg_runtime.camera import Camera
 from stg_runtime.progress import Progress
 
-from .data.sfm import initial_points
+from .data.points import initial_points
+from .losses import loss_fn
+from .metrics import psnr_of_mse
 from .params import LearningRates, STGParams, extent_of, position_lr, view_inputs
-from .splat import rasterize
-from .guided import GuidedSampling
-from .strategy import DensityControl, Schedule, StepContext, Thresholds
+from .render import rasterize
+from .strategy import DensityControl, GuidedSampling, Schedule, StepContext, Strategy, Thresholds
 
 CHECKPOINT_VERSION = 1
 
@@ -43,14 +42,14 @@ class TrainConfig:
     model: "full" (9 features + decoder) or "lite" (rgb); iterations: optimisation steps; batch: views
     per step (one shared time); num_points: initial Gaussians (the most SfM points kept); init: where the
     initial points come from, "sfm" (stg_train.data.sfm on every init_every-th frame, falling back to the
-    view volume when SfM finds too few) or "volume" (params.sample_view_volume); depth_candidates:
+    view volume when SfM finds too few) or "volume" (stg_train.data.volume); depth_candidates:
     photo-consistency depth search of the view-volume points (0: uniform depths; see
-    params.sample_view_volume); static: freeze the time terms (ablation); lr_scale: multiplies every
+    stg_train.data.volume.sample_view_volume); static: freeze the time terms (ablation); lr_scale: multiplies every
     reference learning rate; schedule: Schedule field overrides (iterations of this run) on top of the
     reference schedule stretched to `iterations`; thresholds: Thresholds field overrides; seed: numpy /
     torch / python seeds; device: "cpu" or "cuda"; splatter: the rasteriser backend, "torch" or "gsplat"
-    (stg_train.splat.rasterize); guided: guided sampling of
-    Gaussians in high-error patches (stg_train.guided, the paper's Sec. 4.4); frozen: time components
+    (stg_train.render.rasterize); guided: guided sampling of Gaussians in high-error patches
+    (stg_train.strategy.guided, the paper's Sec. 4.4); frozen: time components
     switched off for ablations (params.COMPONENTS: "temporal_opacity", "motion", "rotation",
     "time_features"; `static` freezes them all).
     """
@@ -77,34 +76,6 @@ class TrainConfig:
     def from_dict(cls, d: dict) -> "TrainConfig":
         names = {f.name for f in fields(cls)}
         return cls(**{k: v for k, v in d.items() if k in names})
-
-
-# -- loss -------------------------------------------------------------------------------------------
-def _gauss_window(size: int = 11, sigma: float = 1.5, channels: int = 3, device=None, dtype=None) -> Tensor:
-    x = torch.arange(size, dtype=torch.float64) - size // 2
-    g = torch.exp(-x * x / (2 * sigma * sigma))
-    g = (g / g.sum()).to(device=device, dtype=dtype)
-    return (g[:, None] * g[None, :]).expand(channels, 1, size, size).contiguous()
-
-
-def ssim(img: Tensor, ref: Tensor, window: int = 11, sigma: float = 1.5) -> Tensor:
-    """Mean SSIM of images (B, H, W, 3) in [0, 1], 3DGS's version (Gaussian window, zero padding)."""
-    x, y = img.permute(0, 3, 1, 2), ref.permute(0, 3, 1, 2)
-    c = x.shape[1]
-    w = _gauss_window(window, sigma, c, x.device, x.dtype)
-    pad = window // 2
-    mu_x, mu_y = F.conv2d(x, w, padding=pad, groups=c), F.conv2d(y, w, padding=pad, groups=c)
-    sxx = F.conv2d(x * x, w, padding=pad, groups=c) - mu_x * mu_x
-    syy = F.conv2d(y * y, w, padding=pad, groups=c) - mu_y * mu_y
-    sxy = F.conv2d(x * y, w, padding=pad, groups=c) - mu_x * mu_y
-    c1, c2 = 0.01 ** 2, 0.03 ** 2
-    s = ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x ** 2 + mu_y ** 2 + c1) * (sxx + syy + c2))
-    return s.mean()
-
-
-def loss_fn(img: Tensor, ref: Tensor, lambda_dssim: float = 0.2) -> Tensor:
-    """(1 - lambda) L1 + lambda (1 - SSIM) over a batch (B, H, W, 3)."""
-    return (1 - lambda_dssim) * (img - ref).abs().mean() + lambda_dssim * (1 - ssim(img, ref))
 
 
 # -- the trainer ------------------------------------------------------------------------------------
@@ -143,7 +114,7 @@ class Trainer:
             self.step = int(_state["step"])
             self.rng = np.random.default_rng()
         self.optimizer = torch.optim.Adam(self.params.param_groups(self.lr, self.extent), eps=1e-15)
-        self.strategies = [DensityControl(self.schedule, self.extent, self.thresholds, box=self.box)]
+        self.strategies: list[Strategy] = [DensityControl(self.schedule, self.extent, self.thresholds, box=self.box)]
         if config.guided:
             self.strategies.append(GuidedSampling(self.schedule))
         self.history: list[dict] = []  # per-step figures: step, loss, psnr, gaussians, seconds
@@ -169,7 +140,7 @@ class Trainer:
         return self._rays[camera_index]
 
     def render(self, camera: Camera, tau: float, gaussians=None, rays: Tensor | None = None):
-        """rgb (H, W, 3) and the splat.RenderOutput of `camera` at normalised time tau (differentiable)."""
+        """rgb (H, W, 3) and the render.RenderOutput of `camera` at normalised time tau (differentiable)."""
         g = self.params.at(tau) if gaussians is None else gaussians
         out = rasterize(g.means, g.quats, g.scales, g.opacities, g.features, camera, backend=self.config.splatter)
         return self.params.colour(out.features, camera, rays), out
@@ -199,20 +170,19 @@ class Trainer:
             renders.append((ds.cameras[ci], out))
         img = torch.stack(images)
         gt = torch.stack([self.ground_truth(ci, frame) for ci in views])
+        context = StepContext(ds, frame, tau, renders,
+                              lambda ci, t: self.render(ds.cameras[ci], t, rays=self.rays(ci)), self.ground_truth)
+        for strategy in self.strategies:
+            strategy.step_pre_backward(self.params, self.optimizer, self.step, context)
         loss = loss_fn(img, gt)
         loss.backward()
         with torch.no_grad():
             mse = ((img.detach() - gt) ** 2).mean().item()
-        context = StepContext(ds, frame, tau, lambda ci, t: self.render(ds.cameras[ci], t, rays=self.rays(ci)),
-                              self.ground_truth)
         for strategy in self.strategies:
-            if getattr(strategy, "wants_context", False):
-                strategy.step_post_backward(self.params, self.optimizer, renders, self.step, context=context)
-            else:
-                strategy.step_post_backward(self.params, self.optimizer, renders, self.step)
+            strategy.step_post_backward(self.params, self.optimizer, self.step, context)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
-        return {"loss": loss.item(), "psnr": -10 * math.log10(max(mse, 1e-12))}
+        return {"loss": loss.item(), "psnr": psnr_of_mse(max(mse, 1e-12))}
 
     def train(self, progress: bool = True, callback: Callable[["Trainer"], None] | None = None) -> None:
         """Run to config.iterations, checkpointing every config.checkpoint_every steps and at the end.
@@ -252,7 +222,7 @@ class Trainer:
             for j in frames:
                 img = self.render_numpy(ds.cameras[ci], j / ds.num_frames)
                 mse = float(np.mean((img.astype(np.float64) - ds.image(ci, j)) ** 2))
-                values.append(-10 * math.log10(max(mse, 1e-12)))
+                values.append(psnr_of_mse(max(mse, 1e-12)))
         return float(np.mean(values))
 
     # -- checkpoints ----------------------------------------------------------------------------------
@@ -266,19 +236,11 @@ class Trainer:
                         "python": random.getstate()}}
 
     def save_checkpoint(self, path) -> None:
-        """Write the state atomically: a temporary file in the same folder, fsync, then os.replace."""
+        """Write the state to `path` atomically (stg_runtime.atomic)."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
-        try:
-            with open(tmp, "wb") as f:
-                torch.save(self.state_dict(), f)
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, path)
-        finally:
-            if tmp.exists():
-                tmp.unlink()
+        with atomic_output(path) as tmp:
+            torch.save(self.state_dict(), tmp)
 
     @classmethod
     def resume(cls, dataset, path, out_dir=None, device: str | None = None, splatter: str | None = None) -> "Trainer":

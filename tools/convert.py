@@ -5,7 +5,7 @@ The logic lives in stg_train.convert; see `python tools/convert.py --help`.
 """
 import sys
 
-from stg_train.convert.cli import main
+from stg_train.cli.convert import main
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -1,6 +1,6 @@
 """Convert models: compress, quantize, prune, merge, and import / export other tools' files.
 
-Modules (numpy only unless noted; `stg-convert` is the command line over them):
+Modules (numpy only unless noted; `stg-convert`, stg_train.cli.convert, is the command line over them):
 
 - compress:    prune (faint / unseen Gaussians), Morton-order and quantize a model with presets
                (lossless, balanced, small) and report sizes and the PSNR change
@@ -9,5 +9,4 @@ Modules (numpy only unless noted; `stg-convert` is the command line over them):
 - gaussians3d: import static 3D Gaussian Splatting PLYs (INRIA layout) and export snapshots as such
 - merge:       join files whose segments follow each other
 - ply:         a small PLY reader and writer
-- cli:         `stg-convert` (compress, import-reference, import-3dgs, export-ply, merge)
 """

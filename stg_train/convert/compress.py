@@ -35,6 +35,8 @@ from stg_runtime.model import ATTRIBUTES, Model, Segment
 from stg_runtime.player import Player
 from stg_runtime.spec import MIN_ALPHA, project_oracle
 
+from ..metrics import psnr_of_mse
+
 
 @dataclass(frozen=True)
 class Preset:
@@ -337,10 +339,6 @@ def mse(images: list, references: list) -> float:
     if not images:
         return 0.0
     return float(np.mean([np.mean((np.asarray(a, np.float64) - b) ** 2) for a, b in zip(images, references)]))
-
-
-def psnr_of_mse(value: float) -> float:
-    return float("inf") if value <= 0 else -10.0 * math.log10(value)
 
 
 def budget_mse(max_loss_db: float, model_mse: float) -> float:

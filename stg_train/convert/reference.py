@@ -27,6 +27,7 @@ import numpy as np
 from stg_runtime.model import ACTIVATIONS, Model, Segment
 from stg_runtime.onnx_mlp import mlp_to_onnx
 
+from ..raw import to_file_arrays
 from .ply import PLYError, read_ply, require
 
 #: The reference's time normaliser: frame j of a segment is at t = j / REFERENCE_FRAMES.
@@ -41,10 +42,6 @@ DECODER_KEYS = {"mlp1.weight": (6, 12, 1, 1), "mlp2.weight": (3, 6, 1, 1)}
 
 class ReferenceModelError(ValueError):
     """A reference model file that cannot be imported; the message starts with the file's name."""
-
-
-def _sigmoid(x: np.ndarray) -> np.ndarray:
-    return 0.5 * (1.0 + np.tanh(0.5 * x))  # no overflow for large |x|
 
 
 def read_reference_ply(path) -> tuple[str, dict[str, np.ndarray]]:
@@ -99,25 +96,21 @@ def load_decoder(path) -> list[np.ndarray]:
 def reference_segment(kind: str, values: dict[str, np.ndarray], start_frame: int, num_frames: int,
                       decoder: bytes | None = None, activation: str = "sigmoid") -> Segment:
     """A runtime Segment of `num_frames` frames from a reference PLY's raw properties (read_reference_ply),
-    rescaling time from t = j / 50 to tau = j / num_frames (see the module docstring)."""
+    rescaling time from t = j / 50 to tau = j / num_frames (see the module docstring). The reference's
+    raw parameters are ours (stg_train.raw), so stg_train.raw.to_file_arrays converts them."""
     v = values
-    k = num_frames / REFERENCE_FRAMES
-    n = v["x"].shape[0]
     cols = lambda prefix, count: np.stack([v[f"{prefix}_{i}"] for i in range(count)], 1)  # noqa: E731
-    motion = cols("motion", 9).reshape(n, 3, 3) * (k ** np.arange(1, 4))[None, :, None]
-    position = np.concatenate([np.stack([v["x"], v["y"], v["z"]], 1)[:, None], motion], 1)
-    rotation = np.stack([cols("rot", 4), k * cols("omega", 4)], 1)
-    features = cols("f_dc", 6 if kind == "full" else 3)
+    raw = {"xyz": np.stack([v["x"], v["y"], v["z"]], 1), "motion": cols("motion", 9), "rotation": cols("rot", 4),
+           "omega": cols("omega", 4), "log_scale": cols("scale", 3), "opacity_logit": v["opacity"],
+           "t_center": v["trbf_center"], "t_scale_raw": v["trbf_scale"],
+           "features": cols("f_dc", 6 if kind == "full" else 3)}
     if kind == "full":
-        features = np.concatenate([features, k * cols("f_t", 3)], 1)
-    with np.errstate(over="ignore"):
-        t_scale = k * k * np.exp(-2.0 * v["trbf_scale"])
-        scale = np.exp(cols("scale", 3))
-    if not (np.all(np.isfinite(t_scale)) and np.all(np.isfinite(scale))):
-        raise ValueError("trbf_scale or scale_* too large or small to exponentiate")
-    return Segment(start_frame, num_frames, opacity=_sigmoid(v["opacity"]), t_center=v["trbf_center"] / k,
-                   t_scale=np.minimum(t_scale, np.finfo(np.float32).max), position=position,
-                   rotation=rotation, scale=scale, features=features, decoder=decoder, activation=activation)
+        raw["time_features"] = cols("f_t", 3)
+    try:
+        arrays = to_file_arrays(raw, time_scale=num_frames / REFERENCE_FRAMES)
+    except ValueError:
+        raise ValueError("trbf_scale or scale_* too large or small to exponentiate") from None
+    return Segment(start_frame, num_frames, decoder=decoder, activation=activation, **arrays)
 
 
 def import_reference(ply_paths, decoder_paths=None, fps: float = 30.0, start_frame: int = 0,

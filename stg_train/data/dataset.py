@@ -1,22 +1,18 @@
 """One data model for every dataset layout: calibrated cameras plus synchronised frames.
 
-Frames are decoded once into a cache file, `frames_uint8.npy`, a uint8 numpy array of shape
-(cameras, frames, H, W, 3) (RGB), and read lazily from it as a memory map: a dataset is never loaded into
-RAM or onto a GPU as a whole.
+Frames are read lazily from a uint8 array (normally the memory-mapped frame cache that
+stg_train.data.frames builds): a dataset is never loaded into RAM or onto a GPU as a whole.
 """
 from __future__ import annotations
 
 import copy
-import json
 import os
 from pathlib import Path
-from typing import Callable, Iterable, Sequence
+from typing import Iterable, Sequence
 
 import numpy as np
 
 from stg_runtime.camera import Camera
-
-CACHE_NAME = "frames_uint8.npy"
 
 
 class DataError(Exception):
@@ -115,78 +111,3 @@ class Dataset:
     def __repr__(self) -> str:
         return (f"Dataset({self.path or '<memory>'}: {self.num_cameras} cameras x {self.num_frames} frames, "
                 f"{self.width}x{self.height}, {self.fps:g} fps, test cameras {self.test_cameras})")
-
-
-# -- the frame cache -------------------------------------------------------------------------------
-def build_frame_cache(cache_dir, signature: dict, shape: tuple, fill: Callable[[np.ndarray], None]) -> np.memmap:
-    """Open the frame cache in cache_dir, (re)building it when it is missing or was made from other data.
-
-    signature: JSON-able description of the source (files, sizes, modification times, options); the
-    cache is reused only when it matches. shape: (C, F, H, W, 3). fill(array): writes every frame into
-    the writable memmap it is given. The file is written under a temporary name and renamed when
-    complete, so an interrupted build is never taken for a cache. Returns a read-only memmap.
-    """
-    cache_dir = Path(cache_dir)
-    path, meta_path = cache_dir / CACHE_NAME, cache_dir / "frames_uint8.json"
-    wanted = dict(signature, shape=list(shape))
-    if path.exists() and meta_path.exists():
-        try:
-            if json.loads(meta_path.read_text()) == wanted:
-                arr = np.load(path, mmap_mode="r")
-                if arr.shape == tuple(shape) and arr.dtype == np.uint8:
-                    return arr
-        except (OSError, ValueError):
-            pass
-    try:
-        cache_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise DataError(f"{cache_dir}: cannot create the frame cache folder ({e})") from None
-    tmp = cache_dir / f"{CACHE_NAME}.{os.getpid()}.tmp"
-    try:
-        try:
-            arr = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=tuple(shape))
-        except OSError as e:
-            raise DataError(f"{tmp}: cannot write the frame cache ({e})") from None
-        fill(arr)
-        arr.flush()
-        del arr
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    meta_tmp = meta_path.with_suffix(f".{os.getpid()}.tmp")
-    meta_tmp.write_text(json.dumps(wanted, indent=1))
-    os.replace(meta_tmp, meta_path)
-    return np.load(path, mmap_mode="r")
-
-
-def common_frames(root, paths, labels, counts, sizes, num_frames: int | None = None) -> tuple[int, int, int]:
-    """(num_frames, width, height) shared by every camera's frame source, or DataError naming the file.
-
-    paths: each source's file or folder; labels: their short names (for listings); counts: their frame
-    counts; sizes: their (width, height). Without num_frames all counts must be equal; with it, every
-    source needs at least that many frames.
-    """
-    if num_frames is None:
-        if len(set(counts)) > 1:
-            listing = ", ".join(f"{lab}: {c} frames" for lab, c in zip(labels, counts))
-            raise DataError(f"{root}: cameras have different frame counts ({listing}); pass num_frames to use "
-                            f"the first {min(counts)}")
-        num_frames = counts[0]
-    else:
-        short = [(path, c) for path, c in zip(paths, counts) if c < num_frames]
-        if short:
-            raise DataError(f"{short[0][0]}: has {short[0][1]} frames, fewer than the {num_frames} asked for")
-    if len(set(sizes)) > 1:
-        listing = ", ".join(f"{lab}: {w}x{h}" for lab, (w, h) in zip(labels, sizes))
-        raise DataError(f"{root}: cameras have different frame sizes ({listing})")
-    return num_frames, *sizes[0]
-
-
-def file_signature(paths: Iterable[Path]) -> list:
-    """[name, size, mtime_ns] of each file, for cache validation."""
-    out = []
-    for p in paths:
-        st = Path(p).stat()
-        out.append([str(p), st.st_size, st.st_mtime_ns])
-    return out

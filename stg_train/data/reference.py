@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from .colmap import cameras_from_reconstruction, read_reconstruction
-from .dataset import DataError, Dataset, file_signature
-from .layouts import FrameSource, build_dataset, image_files
+from .dataset import DataError, Dataset
+from .frames import FrameSource, build_dataset, file_signature, image_files
 
 _FRAME_DIR = re.compile(r"^colmap_(\d+)$")
 

@@ -16,7 +16,7 @@ from pathlib import Path, PurePosixPath
 
 from .colmap import MODEL_FILES, cameras_from_reconstruction, read_reconstruction
 from .dataset import DataError, Dataset
-from .layouts import VIDEO_EXTENSIONS, FrameSource, build_dataset, image_files
+from .frames import VIDEO_EXTENSIONS, FrameSource, build_dataset, image_files
 
 
 def rig_camera_name(image_name: str) -> str:

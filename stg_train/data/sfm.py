@@ -10,21 +10,22 @@ before it), so repeated static structure is thinned while the coverage of each f
 
 The result is cached as an .npz (default folder `<dataset.path>/.stg_cache/sfm/`), keyed by the cameras,
 a sample of the frames' pixels and the settings, so a second run does not run pycolmap again.
-`initial_points` falls back to the view-volume sampler (stg_train.params.sample_view_volume) with a
-warning when SfM finds fewer than MIN_SFM_POINTS points (an untextured scene, too few cameras).
+stg_train.data.points.initial_points falls back to the view-volume sampler with a warning when SfM
+finds fewer than MIN_SFM_POINTS points (an untextured scene, too few cameras).
 """
 from __future__ import annotations
 
 import contextlib
 import hashlib
 import json
-import os
 import tempfile
 import warnings
 from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
+
+from stg_runtime.atomic import atomic_output
 
 from .colmap import reconstruction_from_cameras, reconstruction_points
 from .dataset import DataError
@@ -187,16 +188,11 @@ def _cache_path(dataset, cache_dir, key: str) -> Path | None:
 
 
 def _save(path: Path, **arrays) -> None:
-    """np.savez to a temporary name in the same folder, then os.replace (never a half-written cache)."""
+    """np.savez atomically (stg_runtime.atomic); a folder that cannot be written only warns."""
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp.npz")
-        try:
+        with atomic_output(path) as tmp:
             np.savez(tmp, **arrays)
-            os.replace(tmp, path)
-        finally:
-            if tmp.exists():
-                tmp.unlink()
     except OSError as e:  # a read-only dataset folder: work without the cache
         warnings.warn(f"{path}: cannot write the SfM cache ({e})", stacklevel=3)
 
@@ -236,38 +232,3 @@ def sfm_points(dataset, frames: Sequence[int] | None = None, every: int = 1, cac
         _save(path, xyz=xyz, rgb=rgb, t_center=t_center,
               points_per_frame=np.array([len(p[0]) for p in per_frame]), frames=np.array(frames))
     return xyz, rgb, t_center
-
-
-def initial_points(dataset, method: str, num_points: int, rng: np.random.Generator, every: int = 1,
-                   depth_candidates: int = 0, min_points: int = MIN_SFM_POINTS, cache_dir=None,
-                   progress: Callable[[int, int], None] | None = None):
-    """Initial Gaussians' xyz (N, 3), rgb (N, 3) in [0, 1] and t_center (N,) for the trainer.
-
-    method "sfm": sfm_points of every `every`-th frame, at most num_points of them (a random subset
-    when SfM finds more); fewer than min_points SfM points warn (UserWarning naming the dataset) and
-    fall back to "volume". method "volume": num_points from stg_train.params.sample_view_volume
-    (depth_candidates: its photo-consistency depth search), which needs dataset.bounds (near/far per
-    camera): DataError naming the dataset when they are missing.
-    """
-    from ..params import sample_view_volume
-
-    if method not in ("sfm", "volume"):
-        raise ValueError(f"init must be 'sfm' or 'volume', got {method!r}")
-    where = dataset.path or dataset
-    if method == "sfm":
-        xyz, rgb, t_center = sfm_points(dataset, every=every, cache_dir=cache_dir, progress=progress)
-        if len(xyz) >= min_points:
-            if len(xyz) > num_points:
-                idx = np.sort(rng.choice(len(xyz), num_points, replace=False))
-                xyz, rgb, t_center = xyz[idx], rgb[idx], t_center[idx]
-            return xyz.astype(np.float64), rgb, t_center
-        if dataset.bounds is None:
-            raise DataError(f"{where}: structure-from-motion found only {len(xyz)} points (fewer than "
-                            f"{min_points}), and the layout has no near/far depth bounds for the view-volume "
-                            "sampler; check that the images are textured and overlap and that the poses are right")
-        warnings.warn(f"{where}: structure-from-motion found only {len(xyz)} points (fewer than {min_points}); "
-                      "initialising from the view volume instead", stacklevel=2)
-    elif dataset.bounds is None:
-        raise DataError(f"{where}: the view-volume initialisation needs near/far depth bounds, which this layout "
-                        "does not provide; use the SfM initialisation (--init sfm)")
-    return sample_view_volume(dataset, num_points, rng, depth_candidates=depth_candidates)

@@ -27,7 +27,7 @@ import numpy as np
 from stg_runtime.camera import Camera
 
 from .dataset import DataError, Dataset
-from .layouts import FrameSource, build_dataset, probe
+from .frames import FrameSource, build_dataset, probe
 
 PARAMETERS = "cameras_parameters.txt"
 CALIBRATION_SIZE = (2048, 1088)  # width, height the intrinsics refer to

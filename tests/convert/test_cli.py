@@ -9,7 +9,7 @@ import pytest
 from stg_runtime import Model, Segment
 from stg_runtime import format as stg_format
 from stg_runtime.demo import random_model
-from stg_train.convert.cli import main
+from stg_train.cli.convert import main
 from stg_train.convert.ply import read_ply, write_ply
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -166,7 +166,7 @@ class BlockTorch:
             raise ImportError(f"{name} is blocked in this test")
         return None
 sys.meta_path.insert(0, BlockTorch())
-from stg_train.convert.cli import main
+from stg_train.cli.convert import main
 rc = main(sys.argv[1:])
 assert "torch" not in sys.modules
 sys.exit(rc)

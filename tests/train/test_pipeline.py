@@ -9,7 +9,8 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from stg_runtime.player import Player  # noqa: E402
-from stg_train.cli import eval_main, train_main  # noqa: E402
+from stg_train.cli.eval import main as eval_main  # noqa: E402
+from stg_train.cli.train import main as train_main  # noqa: E402
 from stg_train.data import load_n3v  # noqa: E402
 from stg_train.export import GoldenDiff, export_trainer, trainer_render  # noqa: E402
 from stg_train.trainer import Trainer, TrainConfig  # noqa: E402

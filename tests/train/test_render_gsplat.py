@@ -1,4 +1,4 @@
-"""The gsplat backend of stg_train.splat.rasterize: backend selection, the adapter's mapping of our
+"""The gsplat backend of stg_train.render.rasterize: backend selection, the adapter's mapping of our
 inputs and outputs onto gsplat's `rasterization()` contract (on the CPU, through a stand-in that checks
 the contract and renders with our torch splatter), and the real thing where gsplat and CUDA exist."""
 from __future__ import annotations
@@ -12,9 +12,8 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from stg_runtime.camera import Camera  # noqa: E402
-from stg_train import splat_gsplat  # noqa: E402
-from stg_train.cli import resolve_splatter  # noqa: E402
-from stg_train.splat import RenderOutput, rasterize  # noqa: E402
+from stg_train.render import gsplat_backend  # noqa: E402
+from stg_train.render import RenderOutput, rasterize, resolve_backend  # noqa: E402
 from stg_train.strategy import DensityControl, Schedule  # noqa: E402
 
 
@@ -54,7 +53,7 @@ def _stand_in(calls: list):
 def test_adapter_maps_inputs_and_outputs_like_the_torch_backend():
     (means, quats, scales, opacities, features), camera = _scene()
     calls = []
-    got = splat_gsplat.rasterize_gsplat(means, quats, scales, opacities, features, camera,
+    got = gsplat_backend.rasterize_gsplat(means, quats, scales, opacities, features, camera,
                                         rasterization=_stand_in(calls))
     want = rasterize(means, quats, scales, opacities, features, camera)
     assert calls and isinstance(got, RenderOutput)
@@ -84,17 +83,17 @@ def test_density_control_reads_batched_screen_gradients():
 
 def test_backend_selection(monkeypatch):
     monkeypatch.setitem(sys.modules, "gsplat", None)  # not installed
-    assert resolve_splatter("auto", "cpu") == "torch"
-    assert resolve_splatter("torch", "cuda") == "torch"
+    assert resolve_backend("auto", "cpu") == "torch"
+    assert resolve_backend("torch", "cuda") == "torch"
     with pytest.raises(ValueError, match="not installed"):
-        resolve_splatter("gsplat", "cuda")
+        resolve_backend("gsplat", "cuda")
     monkeypatch.setitem(sys.modules, "gsplat", types.ModuleType("gsplat"))  # installed
     with pytest.raises(ValueError, match="--device cuda"):
-        resolve_splatter("gsplat", "cpu")
-    assert resolve_splatter("auto", "cpu") == "torch"
+        resolve_backend("gsplat", "cpu")
+    assert resolve_backend("auto", "cpu") == "torch"
     if not torch.cuda.is_available():
         with pytest.raises(ValueError, match="no CUDA device"):
-            resolve_splatter("gsplat", "cuda")
+            resolve_backend("gsplat", "cuda")
     with pytest.raises(ValueError, match="backend"):
         rasterize(*_scene()[0], _scene()[1], backend="opengl")
 

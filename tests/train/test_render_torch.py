@@ -1,4 +1,5 @@
-"""stg_train.splat (torch) against the float64 reference and the numba splatter, and its gradients."""
+"""The torch splatter (stg_train.render.torch_splat) against the float64 oracle and the numba splatter,
+and its gradients."""
 import math
 
 import numpy as np
@@ -8,8 +9,8 @@ torch = pytest.importorskip("torch")
 
 from stg_runtime.camera import Camera  # noqa: E402
 from stg_runtime.spec import rasterize_oracle  # noqa: E402
-from stg_train.splat import RenderOutput, rasterize  # noqa: E402
-from stg_train.timeeval import evaluate  # noqa: E402
+from stg_train.params import gaussians_at as evaluate  # noqa: E402
+from stg_train.render import RenderOutput, rasterize  # noqa: E402
 
 
 @pytest.fixture(autouse=True)
@@ -150,7 +151,7 @@ def test_gradcheck(seed, stop, monkeypatch):
     if stop:  # the stop rule acts on some pixels of this scene
         with torch.no_grad():
             with_stop = rasterize(*inputs, cam).alpha
-            monkeypatch.setattr("stg_train.splat.LOG_T_STOP", -math.inf)
+            monkeypatch.setattr("stg_train.render.torch_splat.LOG_T_STOP", -math.inf)
             without = rasterize(*inputs, cam).alpha
             monkeypatch.undo()
         assert ((with_stop - without).abs() > 1e-5).sum() >= 3
@@ -184,7 +185,7 @@ def _tiny_raw(seed, n=4, static=False):
 
 @pytest.mark.parametrize("static", [False, True])
 def test_gradcheck_through_time_evaluation(static):
-    """Every raw parameter through timeeval.evaluate and rasterize. dt is detached for motion, rotation
+    """Every raw parameter through params.gaussians_at and rasterize. dt is detached for motion, rotation
     and time features (by design), so t_center is checked only where nothing else depends on it."""
     cam = Camera.look_at([0, 0, 0], [0, 0, 1], [0, -1, 0], 50.0, 16, 12)
     raw = _tiny_raw(3, static=static)

@@ -14,7 +14,8 @@ torch = pytest.importorskip("torch")
 from stg_runtime import format as stg_format  # noqa: E402
 from stg_runtime.format import FormatError  # noqa: E402
 from stg_runtime.player import Player  # noqa: E402
-from stg_train.cli import eval_main, train_main  # noqa: E402
+from stg_train.cli.eval import main as eval_main  # noqa: E402
+from stg_train.cli.train import main as train_main  # noqa: E402
 from stg_train.convert.merge import attribute_encodings, merge_files, merge_models  # noqa: E402
 from stg_train.data import load_n3v  # noqa: E402
 from stg_train.export import GoldenDiff, trainer_render  # noqa: E402

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from stg_train.data import load_n3v
-from stg_train.synth_cli import main as synth_main
+from stg_train.cli.synth import main as synth_main
 from stg_train.synthetic import LIGHT, OBJECT_NAMES, TARGET, SyntheticScene, llff_pose
 
 W, H = 64, 48

@@ -352,15 +352,16 @@ def test_detection_and_n3v_dispatch(scene, tmp_path):
 
 
 def test_cli_layout_options(rig_images, tmp_path, capsys):
-    from stg_train import cli
+    from stg_train.cli import eval as eval_cli
+    from stg_train.cli import train as train_cli
 
-    args = cli.build_train_parser().parse_args([str(rig_images), "--out", "x", "--layout", "rig", "--fps", "24",
+    args = train_cli.build_parser().parse_args([str(rig_images), "--out", "x", "--layout", "rig", "--fps", "24",
                                                 "--test-camera", "cam01"])
     assert (args.layout, args.fps, args.test_camera) == ("rig", 24.0, "cam01")
-    assert cli.build_eval_parser().parse_args(["m.stg", "d", "--layout", "reference"]).layout == "reference"
-    data = cli.load_dataset(rig_images, layout="auto", fps=24, test_camera="cam01", quiet=True)
+    assert eval_cli.build_parser().parse_args(["m.stg", "d", "--layout", "reference"]).layout == "reference"
+    data = load_dataset(rig_images, layout="auto", fps=24, test_camera="cam01", show_progress=False)
     assert data.fps == 24 and data.test_cameras == [1]
-    assert cli.train_main([str(rig_images), "--out", str(tmp_path / "out"), "--layout", "technicolor"]) == 2
+    assert train_cli.main([str(rig_images), "--out", str(tmp_path / "out"), "--layout", "technicolor"]) == 2
     err = capsys.readouterr().err
     assert str(rig_images) in err and "_undist_" in err and "Traceback" not in err
     assert not (tmp_path / "out").exists()

@@ -112,7 +112,7 @@ def test_downscale_halves_sizes_and_intrinsics(n3v, tmp_path):
 def test_cache_is_reused_and_rebuilt_when_data_change(n3v, tmp_path):
     path = _copy(n3v, tmp_path)
     first = load_n3v(path)
-    cache = path / ".stg_cache" / "n3v_mp4_x1_f5" / "frames_uint8.npy"
+    cache = path / ".stg_cache" / "n3v_video_x1_f5" / "frames_uint8.npy"
     assert cache.is_file()
     stamp = cache.stat().st_mtime_ns
     again = load_n3v(path)

@@ -6,7 +6,8 @@ import pytest
 import stg_train  # noqa: F401  (sets the OpenMP policy before torch is imported)
 from stg_train.data import DataError, Dataset, load_n3v
 from stg_train.data import sfm
-from stg_train.params import sample_view_volume
+from stg_train.data.points import initial_points
+from stg_train.data.volume import sample_view_volume
 from stg_train.synthetic import SyntheticScene
 
 FPS, FRAMES = 30.0, 2
@@ -121,15 +122,15 @@ def test_blank_scene_falls_back_to_the_view_volume():
     ds = fake_dataset(num_frames=2, value=128)  # untextured: no SIFT features, no points
     assert len(sfm.sfm_points(ds)[0]) == 0
     with pytest.warns(UserWarning, match="structure-from-motion found only 0 points"):
-        xyz, rgb, t_center = sfm.initial_points(ds, "sfm", 60, np.random.default_rng(3))
+        xyz, rgb, t_center = initial_points(ds, "sfm", 60, np.random.default_rng(3))
     expected = sample_view_volume(ds, 60, np.random.default_rng(3))
     for a, b in zip((xyz, rgb, t_center), expected):
         np.testing.assert_array_equal(a, b)
     ds.bounds = None  # a layout without near/far bounds: no fallback, a clear error
     with pytest.raises(DataError, match="found only 0 points.*no near/far depth bounds"):
-        sfm.initial_points(ds, "sfm", 60, np.random.default_rng(3))
+        initial_points(ds, "sfm", 60, np.random.default_rng(3))
     with pytest.raises(DataError, match="needs near/far depth bounds"):
-        sfm.initial_points(ds, "volume", 60, np.random.default_rng(3))
+        initial_points(ds, "volume", 60, np.random.default_rng(3))
 
 
 def test_trainer_starts_from_sfm_points(dataset, points):
@@ -148,7 +149,8 @@ def test_trainer_starts_from_sfm_points(dataset, points):
 
 
 def test_cli_init_options(dataset):
-    from stg_train.cli import build_train_parser, default_init
+    from stg_train.cli.train import build_parser as build_train_parser
+    from stg_train.data.points import default_method as default_init
 
     args = build_train_parser().parse_args(["data", "--out", "o"])
     assert (args.init, args.init_every) == (None, 1)

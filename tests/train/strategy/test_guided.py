@@ -1,4 +1,4 @@
-"""Guided sampling (stg_train.guided) and the ablation switches (TrainConfig.frozen) on a tiny scene."""
+"""Guided sampling (stg_train.strategy.guided) and the ablation switches (TrainConfig.frozen) on a tiny scene."""
 from __future__ import annotations
 
 import numpy as np
@@ -7,9 +7,10 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from stg_train.data import load_n3v  # noqa: E402
-from stg_train.guided import GuidedSampling, coarse_depth, error_pixels  # noqa: E402
+from stg_train.strategy.guided import GuidedSampling, coarse_depth, error_pixels  # noqa: E402
 from stg_train.params import COMPONENTS, STATIC_T_SCALE, STGParams  # noqa: E402
-from stg_train.strategy import Schedule, StepContext, keep_gaussians  # noqa: E402
+from stg_train.strategy import Schedule, StepContext  # noqa: E402
+from stg_train.strategy.ops import keep_gaussians  # noqa: E402
 from stg_train.synthetic import SyntheticScene, write_n3v  # noqa: E402
 from stg_train.trainer import Trainer, TrainConfig  # noqa: E402
 
@@ -30,7 +31,7 @@ def dataset(tmp_path_factory):
 
 def _context(trainer, gt_of):
     ds = trainer.dataset
-    return StepContext(ds, 0, 0.0, lambda ci, t: trainer.render(ds.cameras[ci], t), gt_of)
+    return StepContext(ds, 0, 0.0, [], lambda ci, t: trainer.render(ds.cameras[ci], t), gt_of)
 
 
 @pytest.fixture(scope="module")

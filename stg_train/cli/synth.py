@@ -7,7 +7,8 @@ import time
 
 from stg_runtime.progress import Progress
 
-from .synthetic import SyntheticScene, write_n3v
+from ..synthetic import SyntheticScene, write_n3v
+from .common import error, positive_float, positive_int
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -20,15 +21,6 @@ def _size(text: str) -> tuple[int, int]:
     return w, h
 
 
-def _positive(kind):
-    def parse(text: str):
-        value = kind(text)
-        if value <= 0:
-            raise argparse.ArgumentTypeError(f"must be positive, got {text!r}")
-        return value
-    return parse
-
-
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="stg-synth",
@@ -38,18 +30,18 @@ def build_parser() -> argparse.ArgumentParser:
                     "poses_bounds.npy (LLFF convention), lossless frames/camXX/NNNNNN.png and scene.json. "
                     "cam00 is the centre camera, held out for testing.")
     p.add_argument("out_dir", help="output folder (created if missing; existing files are overwritten)")
-    p.add_argument("--cameras", type=_positive(int), default=12, metavar="N",
+    p.add_argument("--cameras", type=positive_int, default=12, metavar="N",
                    help="number of cameras in the rig (default 12)")
-    p.add_argument("--frames", type=_positive(int), default=30, metavar="N",
+    p.add_argument("--frames", type=positive_int, default=30, metavar="N",
                    help="number of frames per camera (default 30)")
-    p.add_argument("--fps", type=_positive(float), default=30.0,
+    p.add_argument("--fps", type=positive_float, default=30.0,
                    help="frames per second; frame k shows time k / fps seconds (default 30)")
     p.add_argument("--size", type=_size, default=(160, 120), metavar="WxH",
                    help="image width x height in pixels (default 160x120)")
-    p.add_argument("--focal", type=_positive(float), default=None, metavar="PIXELS",
+    p.add_argument("--focal", type=positive_float, default=None, metavar="PIXELS",
                    help="focal length in pixels (default 0.9 x width)")
     p.add_argument("--seed", type=int, default=0, help="seed of the procedural textures and colours (default 0)")
-    p.add_argument("--supersample", type=_positive(int), default=1, metavar="S",
+    p.add_argument("--supersample", type=positive_int, default=1, metavar="S",
                    help="S x S rays per pixel, averaged, against aliasing (default 1; time grows as S^2)")
     p.add_argument("--no-png", action="store_true",
                    help="do not write the lossless PNG frames (only the mp4 videos)")
@@ -62,10 +54,13 @@ def main(argv=None) -> int:
     width, height = args.size
     scene = SyntheticScene(seed=args.seed, duration=args.frames / args.fps)
     start = time.monotonic()
-    with Progress(total=args.cameras * args.frames, desc="stg-synth frames", enabled=not args.quiet) as bar:
-        write_n3v(args.out_dir, scene, num_cameras=args.cameras, num_frames=args.frames, fps=args.fps,
-                  width=width, height=height, png=not args.no_png, focal=args.focal,
-                  supersample=args.supersample, progress=lambda done, total: bar.update(done - bar.count))
+    try:
+        with Progress(total=args.cameras * args.frames, desc="stg-synth frames", enabled=not args.quiet) as bar:
+            write_n3v(args.out_dir, scene, num_cameras=args.cameras, num_frames=args.frames, fps=args.fps,
+                      width=width, height=height, png=not args.no_png, focal=args.focal,
+                      supersample=args.supersample, progress=lambda done, total: bar.update(done - bar.count))
+    except OSError as e:
+        return error("stg-synth", f"{e.filename or args.out_dir}: {e.strerror or e}")
     if not args.quiet:
         print(f"wrote {args.cameras} cameras x {args.frames} frames at {width}x{height} to {args.out_dir} "
               f"in {time.monotonic() - start:.1f} s", file=sys.stderr)

@@ -11,6 +11,18 @@ import os
 import sys
 import warnings
 
+from stg_runtime import format as stg_format
+from stg_runtime.format import FormatError
+from stg_runtime.model import ACTIVATIONS, ATTRIBUTES
+
+from ..convert.compress import PRESETS, compress_file, parse_encodings
+from ..convert.gaussians3d import export_ply, import_3dgs_ply
+from ..convert.merge import merge_files
+from ..convert.ply import PLYError
+from ..convert.reference import import_reference
+from ..data import DataError, load_dataset
+from .common import error, positive_float
+
 PROG = "stg-convert"
 
 EPILOG = """examples:
@@ -34,11 +46,6 @@ COMPRESS_EPILOG = """presets (the options below override them):
 The error budget is measured by rendering: the file's cameras at the first, middle and last frame of
 each segment, or with --data the dataset's held-out camera against its ground truth. The report lists
 Gaussians and bytes per attribute before and after, and the PSNR change."""
-
-
-def _error(message: str) -> int:
-    print(f"{PROG}: error: {message}", file=sys.stderr)
-    return 2
 
 
 def _file_error(path, e: OSError) -> str:
@@ -67,13 +74,6 @@ def _fraction(text: str) -> float:
     return value
 
 
-def _positive_float(text: str) -> float:
-    value = float(text)
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be positive, got {text!r}")
-    return value
-
-
 def _frames(text: str) -> list[int]:
     try:
         values = [int(v) for v in text.split(",")]
@@ -85,10 +85,6 @@ def _frames(text: str) -> list[int]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from stg_runtime.model import ACTIVATIONS, ATTRIBUTES
-
-    from .compress import PRESETS
-
     fmt = argparse.RawDescriptionHelpFormatter
     p = argparse.ArgumentParser(prog=PROG, epilog=EPILOG, formatter_class=fmt,
                                 description="Shrink .stg models, bring models from other tools into the "
@@ -129,7 +125,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--decoder", nargs="+", default=None, metavar="PT",
                    help="decoder state dict (torch, read with weights_only) of each PLY, same order, "
                         "after the files; full models only (reading needs torch)")
-    r.add_argument("--fps", type=_positive_float, default=30.0, help="frames per second (default %(default)s)")
+    r.add_argument("--fps", type=positive_float, default=30.0, help="frames per second (default %(default)s)")
     r.add_argument("--start-frame", type=int, default=0, metavar="N",
                    help="video frame of the first segment's first frame (default 0)")
     r.add_argument("--segment-frames", type=_frames, default=[50], metavar="F[,F...]",
@@ -144,7 +140,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "no motion and constant opacity.")
     g.add_argument("input", metavar="PLY")
     g.add_argument("output", metavar="OUT.stg")
-    g.add_argument("--fps", type=_positive_float, default=30.0, help="frames per second (default %(default)s)")
+    g.add_argument("--fps", type=positive_float, default=30.0, help="frames per second (default %(default)s)")
     g.add_argument("--frames", type=int, default=1, metavar="N", help="frames the static model covers (default 1)")
     g.add_argument("--cameras", metavar="JSON",
                    help="3DGS cameras.json to store as the model's cameras (default: the one of the 3DGS "
@@ -168,32 +164,24 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    from stg_runtime.format import FormatError
-
-    from stg_train.data import DataError
-
-    from .ply import PLYError
-
     handlers = {"compress": _compress, "import-reference": _import_reference, "import-3dgs": _import_3dgs,
                 "export-ply": _export_ply, "merge": _merge}
     try:
         return handlers[args.command](args, parser)
     except (FormatError, PLYError, DataError, ValueError) as e:
-        return _error(str(e))
+        return error(PROG, str(e))
     except OSError as e:
-        return _error(_file_error("", e))
+        return error(PROG, _file_error("", e))
 
 
 def _compress(args, parser) -> int:
-    from .compress import compress_file, parse_encodings
-
     _writable(args.output)
     encodings = {}
     for text in args.encoding:
         try:
             encodings.update(parse_encodings(text))
         except ValueError as e:
-            return _error(f"--encoding: {e}")
+            return error(PROG, f"--encoding: {e}")
     overrides = {"encodings": encodings}
     if args.prune_opacity is not None:
         overrides["prune_opacity"] = args.prune_opacity or None
@@ -205,9 +193,7 @@ def _compress(args, parser) -> int:
         overrides["level"] = args.level
     dataset = None
     if args.data:
-        from stg_train.cli import load_dataset
-
-        dataset = load_dataset(args.data, downscale=args.downscale, quiet=True)
+        dataset = load_dataset(args.data, downscale=args.downscale)
     report = compress_file(args.input, args.output, args.preset, dataset=dataset, **overrides)
     print(report.format())
     print(f"wrote {args.output}")
@@ -215,10 +201,6 @@ def _compress(args, parser) -> int:
 
 
 def _import_reference(args, parser) -> int:
-    from stg_runtime import format as stg_format
-
-    from .reference import import_reference
-
     plys, out = args.inputs, _writable(args.output)
     frames = args.segment_frames[0] if len(args.segment_frames) == 1 else args.segment_frames
     model = import_reference(plys, args.decoder, fps=args.fps, start_frame=args.start_frame,
@@ -231,10 +213,6 @@ def _import_reference(args, parser) -> int:
 
 
 def _import_3dgs(args, parser) -> int:
-    from stg_runtime import format as stg_format
-
-    from .gaussians3d import import_3dgs_ply
-
     if args.frames <= 0:
         parser.error("--frames must be positive")
     _writable(args.output)
@@ -245,10 +223,6 @@ def _import_3dgs(args, parser) -> int:
 
 
 def _export_ply(args, parser) -> int:
-    from stg_runtime import format as stg_format
-
-    from .gaussians3d import export_ply
-
     _writable(args.output)
     model = stg_format.load(args.input)
     try:
@@ -259,15 +233,13 @@ def _export_ply(args, parser) -> int:
             print(f"stg-convert: warning: {w.message}", file=sys.stderr)
     except ValueError as e:
         if str(e).startswith("t ="):
-            return _error(f"{args.input}: --time {args.time}: {e}")
+            return error(PROG, f"{args.input}: --time {args.time}: {e}")
         raise
     print(f"wrote {args.output}: {count} Gaussians at t = {args.time:g} s")
     return 0
 
 
 def _merge(args, parser) -> int:
-    from .merge import merge_files
-
     inputs, out = args.inputs, _writable(args.output)
     model = merge_files(inputs, out)
     print(f"wrote {out}: {len(model.segments)} segments, {model.num_frames} frames, "

@@ -1,4 +1,4 @@
-"""Guided sampling of Gaussians (the paper's Sec. 4.4) as a strategy plug-in (stg_train.strategy).
+"""Guided sampling of Gaussians (the paper's Sec. 4.4) as a strategy (stg_train.strategy.base).
 
 Distant or textureless regions that the initial points miss stay blurry: density control only grows
 Gaussians near existing ones. Guided sampling adds Gaussians along the rays of pixels with large errors,
@@ -36,8 +36,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .params import STGParams
-from .strategy import Schedule, StepContext, append_gaussians
+from ..losses import ssim
+from ..params import STGParams
+from .base import StepContext, Strategy
+from .ops import append_gaussians
+from .schedule import Schedule
 
 
 @dataclass(frozen=True)
@@ -116,15 +119,13 @@ def ray_samples(camera, rows: Tensor, cols: Tensor, depth: Tensor, far: float | 
     return camera.unproject(u, v, z.reshape(-1).numpy()), z.reshape(-1)
 
 
-class GuidedSampling:
+class GuidedSampling(Strategy):
     """The guided-sampling strategy (see the module docstring); place it after DensityControl.
 
     schedule: its guided_start / guided_every fields; settings: GuidedSettings. `scores`: [ssim, camera
     index] of every training view at guided_start, lowest first; `log`: one entry per sampling attempt:
     step, camera index, ssim, added (Gaussians).
     """
-
-    wants_context = True
 
     def __init__(self, schedule: Schedule, settings: GuidedSettings = GuidedSettings()):
         self.schedule, self.settings = schedule, settings
@@ -133,10 +134,11 @@ class GuidedSampling:
         self.scores: list[list] = []
         self.log: list[dict] = []
 
-    def step_post_backward(self, params: STGParams, optimizer: torch.optim.Optimizer, renders: list, step: int,
-                           context: StepContext | None = None) -> None:
+    def step_post_backward(self, params: STGParams, optimizer: torch.optim.Optimizer, step: int,
+                           context: StepContext) -> None:
+        """From schedule.guided_start: choose the views once, then sample one view every guided_every."""
         s = self.schedule
-        if context is None or step < s.guided_start:
+        if step < s.guided_start:
             return
         if self.chosen is None:
             self.chosen = self.choose_views(context)
@@ -148,8 +150,6 @@ class GuidedSampling:
     @torch.no_grad()
     def choose_views(self, context: StepContext) -> list[int]:
         """Training cameras (up to settings.views) with the lowest SSIM below select_ssim at the step's time."""
-        from .trainer import ssim
-
         scores = []
         for ci in context.dataset.train_cameras:
             rgb, _ = context.render(ci, context.tau)
@@ -162,8 +162,6 @@ class GuidedSampling:
     def sample_view(self, params: STGParams, optimizer, context: StepContext, camera_index: int) -> tuple[int, float]:
         """Render camera_index at the step's time; add Gaussians if its SSIM is below act_ssim.
         Returns (Gaussians added, SSIM)."""
-        from .trainer import ssim
-
         rgb, out = context.render(camera_index, context.tau)
         rgb = rgb.clamp(0, 1)
         gt = context.ground_truth(camera_index, context.frame)

@@ -1,95 +1,24 @@
-"""Density control (clone / split / prune / opacity reset) as a plug-in called after backward.
-
-The idea is gsplat's `Strategy`: the trainer calls `strategy.step_post_backward(params, optimizer,
-renders, step)` once per iteration after `loss.backward()` and before `optimizer.step()`; the strategy
-reads the screen-space gradients of the renders, and on its schedule edits the Gaussians through
-`append_gaussians` / `keep_gaussians`, which keep the Adam state of every parameter tensor in step.
-
-Other strategies (e.g. guided sampling, stg_train.guided) plug in the same way: an object with
-`step_post_backward(params, optimizer, renders, step)`, `state_dict()` and `load_state_dict(state)`,
-placed in the trainer's list of strategies after `DensityControl`. They may add Gaussians with
-`append_gaussians` (new rows go at the end; `DensityControl` extends its statistics with zeros for them)
-and must leave removing them to `DensityControl`. A strategy that needs more than the batch's renders
-(ground truth, renders of other training views) sets the class attribute `wants_context = True`; the
-trainer then calls `step_post_backward(params, optimizer, renders, step, context=StepContext(...))`
-with the dataset, the step's frame and time, and functions that render a training view and fetch its
-ground truth. Random numbers must come from torch's global generator (checkpointed by the trainer), so
-that a resumed run reaches the same state.
+"""Density control (clone / split / prune / opacity reset), the reference implementation's, as a strategy.
 
 Thresholds and schedule follow the reference implementation (N3V settings, 30k iterations): densify
 from 500 every 100 iterations for 6 rounds (gradient threshold 2e-4 in NDC units, percent_dense 0.01,
 split into 2 with scale / 1.6, cloned and split Gaussians get a random temporal centre), prune opacity
 < 0.005 every 100 iterations until 7k, opacity reset to <= 0.01 every 3000 until 9k, Gaussians outside
-the initial box removed at 10k. `Schedule.scaled(total)` maps these onto a run of `total` iterations.
+the initial box removed at 10k. Schedule.scaled(total) maps these onto a run of `total` iterations.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, replace
-from typing import Callable, NamedTuple
+from dataclasses import asdict, dataclass
 
 import torch
 from torch import Tensor
 
-from .params import STGParams
-from .splat import quat_to_rotmat
-
-
-@dataclass(frozen=True)
-class Schedule:
-    """When density control acts (iteration numbers of the run it is used in)."""
-
-    refine_start: int = 500  # first densify / prune step (exclusive, as the reference: it > start)
-    refine_every: int = 100
-    densify_rounds: int = 6  # densification steps; later refine steps only prune
-    prune_until: int = 7000
-    reset_every: int = 3000  # opacity reset period; 0 disables
-    reset_until: int = 9000
-    outside_at: int = 10000  # remove Gaussians outside the initial box at this step; 0 disables
-    guided_start: int = 1600  # guided sampling (stg_train.guided): views chosen at this step, first sampling
-    guided_every: int = 100  # steps between guided samplings (one per chosen view)
-
-    @classmethod
-    def scaled(cls, total: int, reference_total: int = 30000, min_every: int = 25, min_start: int = 50,
-               min_reset_every: int = 1000, **overrides) -> "Schedule":
-        """The reference schedule (for `reference_total` iterations) stretched to `total` iterations.
-
-        Floors keep short runs sensible (measured on the synthetic scenes): at least `min_every` steps of
-        gradient statistics per refine step, the first after `min_start` steps, and opacity resets at
-        least `min_reset_every` steps apart (opacity needs that long to recover; runs shorter than
-        about 3x that have none). Guided sampling starts where the reference's does relative to density
-        control (its 1600 = refine_start + (densify_rounds + 5) refine periods, after the densification
-        rounds, once the loss is stable), or at the scaled 1600 if later; its samplings are a refine
-        period apart. A 30k-iteration run gets exactly the reference schedule. Keyword overrides
-        replace single fields (they do not move the other fields)."""
-        f = total / reference_total
-        ref = cls()
-        start = max(min_start, round(ref.refine_start * f))
-        every = max(min_every, round(ref.refine_every * f))
-        sched = cls(refine_start=start, refine_every=every,
-                    densify_rounds=ref.densify_rounds,
-                    prune_until=round(ref.prune_until * f),
-                    reset_every=max(min_reset_every, round(ref.reset_every * f)),
-                    reset_until=round(ref.reset_until * f),
-                    outside_at=round(ref.outside_at * f),
-                    guided_start=max(round(ref.guided_start * f), start + (ref.densify_rounds + 5) * every),
-                    guided_every=max(min_every, round(ref.guided_every * f)))
-        return replace(sched, **overrides)
-
-
-class StepContext(NamedTuple):
-    """What the trainer passes to strategies with `wants_context = True` (see the module docstring).
-
-    dataset: the stg_train.data.Dataset; frame: the step's frame index; tau: its normalised time;
-    render(camera_index, tau) -> (rgb (H, W, 3), splat.RenderOutput) of the current parameters (call it
-    under torch.no_grad()); ground_truth(camera_index, frame) -> (H, W, 3) float in [0, 1] on the device.
-    """
-
-    dataset: object
-    frame: int
-    tau: float
-    render: Callable
-    ground_truth: Callable
+from ..params import STGParams
+from ..render.torch_splat import quat_to_rotmat
+from .base import StepContext, Strategy
+from .ops import append_gaussians, keep_gaussians, set_values
+from .schedule import Schedule
 
 
 @dataclass(frozen=True)
@@ -106,47 +35,7 @@ class Thresholds:
     random_t_center: bool = True  # cloned / split Gaussians get a uniform random temporal centre
 
 
-# -- editing Gaussians with the optimizer in step -------------------------------------------------------
-def _swap(params: STGParams, optimizer: torch.optim.Optimizer, name: str, new_value: Tensor, edit_state) -> None:
-    """Replace raw parameter `name` by new_value (a fresh leaf), editing its Adam moments with edit_state."""
-    old = params.raw[name]
-    new = new_value.detach().contiguous().requires_grad_(old.requires_grad)
-    params.raw[name] = new
-    for group in optimizer.param_groups:
-        if group.get("name") == name:
-            group["params"][0] = new
-            state = optimizer.state.pop(old, None)
-            if state:
-                for key in ("exp_avg", "exp_avg_sq"):
-                    if key in state:
-                        state[key] = edit_state(state[key])
-                optimizer.state[new] = state
-            return
-
-
-def append_gaussians(params: STGParams, optimizer: torch.optim.Optimizer, new: dict[str, Tensor]) -> None:
-    """Add Gaussians at the end: new[name] (K, ...) raw values for every name in params.raw; their Adam
-    moments start at zero."""
-    k = next(iter(new.values())).shape[0]
-    for name, value in params.raw.items():
-        extra = new[name].to(value)
-        _swap(params, optimizer, name, torch.cat([value.detach(), extra]),
-              lambda s, k=k: torch.cat([s, s.new_zeros((k,) + s.shape[1:])]))
-
-
-def keep_gaussians(params: STGParams, optimizer: torch.optim.Optimizer, keep: Tensor) -> None:
-    """Keep only the Gaussians where keep (N,) bool is True (values and Adam moments)."""
-    for name, value in params.raw.items():
-        _swap(params, optimizer, name, value.detach()[keep], lambda s: s[keep])
-
-
-def set_values(params: STGParams, optimizer: torch.optim.Optimizer, name: str, value: Tensor) -> None:
-    """Overwrite raw parameter `name` and zero its Adam moments (as 3DGS's opacity reset does)."""
-    _swap(params, optimizer, name, value, torch.zeros_like)
-
-
-# -- the strategy --------------------------------------------------------------------------------------
-class DensityControl:
+class DensityControl(Strategy):
     """Clone / split / prune / opacity reset on `schedule` with `thresholds`.
 
     extent: the scene extent (world units) that percent_dense and max_world_scale multiply;
@@ -198,13 +87,13 @@ class DensityControl:
         self.max_radius[seen] = torch.maximum(self.max_radius[seen], radius[seen])
 
     # -- the plug-in entry point ------------------------------------------------------------------------
-    def step_post_backward(self, params: STGParams, optimizer: torch.optim.Optimizer, renders: list,
-                           step: int) -> None:
-        """Called once per iteration (step counts from 1) after backward, before optimizer.step()."""
+    def step_post_backward(self, params: STGParams, optimizer: torch.optim.Optimizer, step: int,
+                           context: StepContext) -> None:
+        """Accumulate the step's screen gradients; on the schedule, densify, prune, reset or cull."""
         s = self.schedule
         self._fit(params.count)
         if step <= s.prune_until or self.rounds_done < s.densify_rounds:
-            self.accumulate(renders)
+            self.accumulate(context.renders)
         if step > s.refine_start and step % s.refine_every == 0:
             if self.rounds_done < s.densify_rounds:
                 self.densify_and_prune(params, optimizer, step)

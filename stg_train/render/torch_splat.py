@@ -1,10 +1,10 @@
 """Differentiable Gaussian splatting in plain torch (autograd): the trainer's renderer on any device.
 
-The maths and constants are those of formats/stg-v1.md, section 3, exactly as in
-stg_runtime.splat_reference (float64 numpy) and stg_runtime.splat_cpu (numba): EWA projection with the
-near plane, Jacobian clamp, blur and determinant cull; 3-sigma radius; per-pixel footprint test;
-front-to-back compositing in (depth, index) order with the 1/255 alpha floor, the 0.99 alpha cap and the
-1e-4 transmittance stop. Discrete decisions (culls, radii, order, thresholds, the stop) carry no
+The maths and constants are those of formats/stg-v1.md, section 3 (stg_runtime.spec), exactly as in
+the float64 oracle stg_runtime.spec.rasterize_oracle and stg_runtime.splat_cpu (numba): EWA projection
+with the near plane, Jacobian clamp, blur and determinant cull; 3-sigma radius; per-pixel footprint
+test; front-to-back compositing in (depth, index) order with the 1/255 alpha floor, the 0.99 alpha cap
+and the 1e-4 transmittance stop. Discrete decisions (culls, radii, order, thresholds, the stop) carry no
 gradient; everything else is differentiable w.r.t. means, quats, scales, opacities and features.
 
 How it is vectorised (no per-pixel Python loop):
@@ -20,13 +20,10 @@ How it is vectorised (no per-pixel Python loop):
      had not stopped in an earlier chunk. Tiles whose pixels have all stopped, or whose lists are
      exhausted, drop out of later chunks.
 
-Speed (forward + backward, CPU, one thread, 160x120, 9 channels): about 60 ms for 5k and 220 ms for
-20k small Gaussians in a random volume (more where large Gaussians overlap a lot); tile_size 8 and
-chunk 32 were the fastest defaults measured. Memory: every chunk's autograd intermediates (about five
-float and two bool tensors of tiles x pixels x chunk) are kept for backward, so memory grows with the
-number of (tile, Gaussian) pairs actually composited times tile_size^2 (about 250-400 MiB at 160x120 with 20k
-Gaussians, 1.5 GiB at 480x360); `checkpoint=True` with a smaller `max_elements` bounds it by one batch
-of tiles at about 1.5-2.5x the time.
+Memory: every chunk's autograd intermediates (about five float and two bool tensors of tiles x pixels
+x chunk) are kept for backward, so memory grows with the number of (tile, Gaussian) pairs actually
+composited times tile_size^2; `checkpoint=True` with a smaller `max_elements` bounds it by one batch of
+tiles, at more time. docs/performance.md has the measured time and memory.
 """
 from __future__ import annotations
 
@@ -37,12 +34,10 @@ import torch
 import torch.utils.checkpoint
 from torch import Tensor
 
-#: The constants of formats/stg-v1.md, section 3.
-NEAR = 0.01
-BLUR = 0.3
-MIN_ALPHA = 1.0 / 255.0
-MAX_ALPHA = 0.99
-T_STOP = 1e-4
+from stg_runtime.spec import BLUR, JACOBIAN_MARGIN, MAX_ALPHA, MIN_ALPHA, NEAR, T_STOP
+
+from .output import RenderOutput
+
 LOG_T_STOP = math.log(T_STOP)
 
 
@@ -60,26 +55,6 @@ class Projection(NamedTuple):
     depth: Tensor
     radius: Tensor
     valid: Tensor
-
-
-class RenderOutput(NamedTuple):
-    """What `rasterize` returns. The first three are the images; the rest are per input Gaussian.
-
-    features (H, W, C) = sum w_i f_i; alpha (H, W) = sum w_i; depth (H, W) = sum w_i z_i / alpha (0 where
-    alpha == 0), all in the inputs' dtype/device;
-    means2d (M, 2) the 2D means in pixels ((1, M, 2) from the gsplat backend, its batched tensor): after
-    backward, `means2d.grad` is the screen-space positional gradient in pixels (3DGS measures it in NDC:
-    multiply by (W/2, H/2) to compare with its thresholds);
-    radii (M,) int64 footprint radius in pixels, 0 for Gaussians that are culled or touch no pixel;
-    visible (M,) bool, radii > 0.
-    """
-
-    features: Tensor
-    alpha: Tensor
-    depth: Tensor
-    means2d: Tensor
-    radii: Tensor
-    visible: Tensor
 
 
 def quat_to_rotmat(quats: Tensor) -> Tensor:
@@ -111,8 +86,8 @@ def project(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, cam
     # Sigma = R S S^T R^T in camera space; J with x/z, y/z clamped to 1.3 x the half field of view.
     RS = quat_to_rotmat(quats) * scales[:, None, :]
     tan_x, tan_y = W / (2 * fx), H / (2 * fy)
-    xz = (x / zs).clamp(-(cx / fx + 0.3 * tan_x), (W - cx) / fx + 0.3 * tan_x)
-    yz = (y / zs).clamp(-(cy / fy + 0.3 * tan_y), (H - cy) / fy + 0.3 * tan_y)
+    xz = (x / zs).clamp(-(cx / fx + JACOBIAN_MARGIN * tan_x), (W - cx) / fx + JACOBIAN_MARGIN * tan_x)
+    yz = (y / zs).clamp(-(cy / fy + JACOBIAN_MARGIN * tan_y), (H - cy) / fy + JACOBIAN_MARGIN * tan_y)
     zero = torch.zeros_like(zs)
     J = torch.stack([fx / zs, zero, -fx * xz / zs, zero, fy / zs, -fy * yz / zs], -1).reshape(-1, 2, 3)
     T = (J @ Rc) @ RS  # (M, 2, 3): cov2d = T T^T
@@ -222,16 +197,10 @@ def _composite_batch(tiles: Tensor, start: Tensor, count: Tensor, gauss: Tensor,
     return acc
 
 
-BACKENDS = ("torch", "gsplat")
-
-
-def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, features: Tensor, camera,
-              *, backend: str = "torch", tile_size: int = 8, chunk: int = 32, max_elements: int = 1 << 22,
-              checkpoint: bool = False) -> RenderOutput:
+def rasterize_torch(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, features: Tensor, camera,
+                    *, tile_size: int = 8, chunk: int = 32, max_elements: int = 1 << 22,
+                    checkpoint: bool = False) -> RenderOutput:
     """Render M Gaussians with the rules of formats/stg-v1.md, section 3 (see module docstring).
-
-    backend: "torch" (this module, any device) or "gsplat" (gsplat's CUDA kernels through
-    stg_train.splat_gsplat; the keyword arguments below apply to the torch backend only).
 
     means (M, 3) world positions; quats (M, 4) wxyz (normalised here); scales (M, 3) standard deviations
     (world units); opacities (M,) or (M, 1) in [0, 1]; features (M, C); camera: a
@@ -241,12 +210,6 @@ def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, f
     instead of keeping its intermediates (memory bounded by one batch, about 1.4x the time).
     Returns a RenderOutput (features, alpha, depth, means2d, radii, visible).
     """
-    if backend == "gsplat":
-        from .splat_gsplat import rasterize_gsplat
-
-        return rasterize_gsplat(means, quats, scales, opacities, features, camera)
-    if backend != "torch":
-        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     W, H = camera.width, camera.height
     ts = int(tile_size)
     ntx, nty = -(-W // ts), -(-H // ts)

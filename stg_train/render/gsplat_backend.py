@@ -1,4 +1,4 @@
-"""The `gsplat` backend: gsplat's CUDA `rasterization()` behind `stg_train.splat.rasterize`'s interface.
+"""The `gsplat` backend: gsplat's CUDA `rasterization()` behind stg_train.render.rasterize.
 
 Only the rasterisation moves to gsplat; the STG parts (time evaluation of positions, rotations,
 opacities and features) stay in our torch code before the call. gsplat's "classic" mode uses the
@@ -16,7 +16,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .splat import NEAR, BLUR, RenderOutput
+from stg_runtime.spec import BLUR, NEAR
+
+from .output import RenderOutput
 
 
 def unavailable_reason(device) -> str | None:
@@ -42,7 +44,7 @@ def camera_tensors(camera, device, dtype) -> tuple[Tensor, Tensor]:
 
 def rasterize_gsplat(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, features: Tensor,
                      camera, *, rasterization=None) -> RenderOutput:
-    """`stg_train.splat.rasterize` through gsplat: same inputs, same RenderOutput.
+    """stg_train.render.rasterize through gsplat: same inputs, same RenderOutput.
 
     means (M, 3), quats (M, 4) wxyz, scales (M, 3), opacities (M,) or (M, 1), features (M, C) on a CUDA
     device; camera a stg_runtime Camera. `rasterization` replaces gsplat.rasterization (tests).

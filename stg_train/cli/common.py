@@ -1,0 +1,62 @@
+"""What the command lines share: argument types, the dataset options, errors, the figures table."""
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def positive_int(text: str) -> int:
+    value = int(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be positive, got {text!r}")
+    return value
+
+
+def error(prog: str, message: str) -> int:
+    """Print `prog: error: message` on stderr; the exit code of bad input, 2."""
+    print(f"{prog}: error: {message}", file=sys.stderr)
+    return 2
+
+
+def add_dataset_options(p: argparse.ArgumentParser) -> None:
+    """--layout, --fps, --test-camera, --downscale and --from-video: how DATA is read."""
+    from ..data import LAYOUTS
+
+    p.add_argument("--layout", choices=("auto",) + LAYOUTS, default="auto",
+                   help="dataset layout of DATA (default auto: detected from its files)")
+    p.add_argument("--fps", type=float, default=None, metavar="FPS",
+                   help="frame rate of the data (default: the videos', else 30 for layouts that store none)")
+    p.add_argument("--test-camera", default=None, metavar="NAME",
+                   help="camera held out for evaluation (default: cam00 for n3v and reference, cam10 for "
+                        "technicolor, the first camera by name for rig)")
+    p.add_argument("--downscale", type=positive_int, default=1, metavar="K",
+                   help="divide the frames' width and height by K (default 1; stg-eval takes the K used in training)")
+    p.add_argument("--from-video", action="store_true",
+                   help="decode the videos even where lossless PNG frames exist (n3v: camXX.mp4 over "
+                        "frames/camXX/*.png; rig: videos/ over images/)")
+
+
+def dataset_options(args) -> dict:
+    """The keyword arguments of stg_train.data.load_dataset from add_dataset_options' arguments (and
+    --quiet)."""
+    return dict(layout=args.layout, downscale=args.downscale, from_video=args.from_video, fps=args.fps,
+                test_camera=args.test_camera, show_progress=not args.quiet)
+
+
+def format_table(figures: dict, file_bytes: int, gaussians: int | None = None) -> str:
+    """The held-out figures (stg_train.metrics.HELDOUT_KEYS), size and Gaussian count, one per line."""
+    rows = [("PSNR (dB)", f"{figures['psnr']:.2f}"), ("SSIM", f"{figures['ssim']:.4f}"),
+            ("DSSIM1", f"{figures['dssim1']:.4f}"), ("DSSIM2", f"{figures['dssim2']:.4f}"),
+            ("render FPS", f"{figures['fps']:.1f}"), ("model size (MB)", f"{file_bytes / 1e6:.2f}")]
+    if gaussians is not None:
+        rows.append(("Gaussians", str(gaussians)))
+    rows.append(("images", f"{figures['images']} ({', '.join(figures['cameras'])})"))
+    width = max(len(k) for k, _ in rows)
+    return "\n".join(f"{k:<{width}}  {v}" for k, v in rows)

@@ -1,0 +1,99 @@
+"""Initial points sampled in the training cameras' common view volume, at photo-consistent depths
+(numpy only): the initialisation of layouts with near/far depth bounds (N3V and the demo).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from stg_runtime.camera import Camera
+
+
+def _unproject(camera: Camera, u: np.ndarray, v: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """World points (..., 3) at camera-space depth `depth` through pixel centres (u + 0.5, v + 0.5)."""
+    return camera.unproject(u + 0.5, v + 0.5, depth)
+
+
+def _project(camera: Camera, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pixel columns, rows (integer, nearest) and a bool mask of points in front and inside the image."""
+    uv, z = camera.project(xyz)
+    u, v = np.floor(uv[..., 0]).astype(np.int64), np.floor(uv[..., 1]).astype(np.int64)
+    ok = (z > 0) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+    return np.clip(u, 0, camera.width - 1), np.clip(v, 0, camera.height - 1), ok
+
+
+def _box3(image: np.ndarray) -> np.ndarray:
+    """3x3 box blur of an (H, W, 3) image (edges replicated), against noise in colour matching."""
+    pad = np.pad(image, ((1, 1), (1, 1), (0, 0)), mode="edge")
+    h, w = image.shape[:2]
+    return sum(pad[dy:dy + h, dx:dx + w] for dy in range(3) for dx in range(3)) / 9.0
+
+
+def sample_view_volume(dataset, num_points: int, rng: np.random.Generator, min_views: float = 0.5,
+                       depth_candidates: int = 0):
+    """Initial points sampled in the view volume of the training cameras (--init volume).
+
+    Each point picks a training camera, a pixel and a depth in [near, far] of that camera
+    (dataset.bounds), and takes the pixel's colour in frame j of that camera, where j spreads the points
+    evenly over the frames (temporal centre j / num_frames, like the reference's per-frame SfM points).
+    Points seen by fewer than `min_views` of the training cameras are drawn again. The depth is uniform
+    when depth_candidates is 0; otherwise it is the most photo-consistent of `depth_candidates` depths
+    (uniform in 1/depth, jittered): the one whose projections into the other training cameras' frame j
+    have the colours closest to the source pixel's (a per-pixel plane sweep; 3x3-blurred frames).
+    Returns xyz (N, 3) float64, rgb (N, 3) float32 in [0, 1], t_center (N,) float32.
+    """
+    cams = [dataset.cameras[i] for i in dataset.train_cameras]
+    if dataset.bounds is None:
+        raise ValueError("sample_view_volume: the dataset has no near/far bounds")
+    bounds = np.asarray(dataset.bounds, dtype=np.float64)[dataset.train_cameras]
+    frames = np.arange(num_points) % dataset.num_frames
+    rng.shuffle(frames)
+    xyz = np.zeros((num_points, 3))
+    src = np.zeros(num_points, np.int64)
+    u, v = np.zeros(num_points, np.int64), np.zeros(num_points, np.int64)
+    todo = np.arange(num_points)
+    for _ in range(50):  # after 50 draws a point stays as drawn (a rig without a common view)
+        if todo.size == 0:
+            break
+        k = todo.size
+        src[todo] = rng.integers(0, len(cams), k)
+        u[todo], v[todo] = rng.integers(0, dataset.width, k), rng.integers(0, dataset.height, k)
+        depth = rng.uniform(bounds[src[todo], 0], bounds[src[todo], 1])
+        for c in np.unique(src[todo]):
+            m = todo[src[todo] == c]
+            xyz[m] = _unproject(cams[c], u[m], v[m], depth[src[todo] == c])
+        seen = sum(_project(cam, xyz[todo])[2].astype(int) for cam in cams)
+        todo = todo[seen < min_views * len(cams)]
+    rgb = np.zeros((num_points, 3), np.float32)
+    for j in range(dataset.num_frames):
+        in_frame = np.flatnonzero(frames == j)
+        if in_frame.size == 0:
+            continue
+        images = [dataset.image(i, j) for i in dataset.train_cameras]
+        rgb[in_frame] = np.stack([images[c][v[i], u[i]] for c, i in zip(src[in_frame], in_frame)])
+        if depth_candidates:
+            blurred = [_box3(im) for im in images]
+            for c in np.unique(src[in_frame]):
+                m = in_frame[src[in_frame] == c]
+                xyz[m] = _photo_consistent(cams, blurred, c, u[m], v[m], bounds[c], depth_candidates, rng)
+    return xyz, rgb, (frames / dataset.num_frames).astype(np.float32)
+
+
+def _photo_consistent(cams, images, c, u, v, near_far, candidates, rng) -> np.ndarray:
+    """(P, 3) points along the rays of pixels (u, v) of camera c at the candidate depth whose colours in
+    the other cameras' images best match camera c's (mean L1 over the views that see the point)."""
+    inv = np.linspace(1.0 / near_far[0], 1.0 / near_far[1], candidates)
+    step = abs(inv[1] - inv[0]) if candidates > 1 else 0.0
+    pts = _unproject(cams[c], u[:, None], v[:, None], 1.0 / inv[None, :])  # (P, D, 3)
+    ref = images[c][v, u][:, None, :]
+    cost = np.zeros(pts.shape[:2])
+    count = np.zeros(pts.shape[:2])
+    for k, cam in enumerate(cams):
+        if k == c:
+            continue
+        pu, pv, ok = _project(cam, pts)
+        cost += np.where(ok, np.abs(images[k][pv, pu] - ref).sum(-1), 0.0)
+        count += ok
+    cost = np.where(count > 0, cost / np.maximum(count, 1), np.inf)
+    best = inv[np.argmin(cost, axis=1)] + rng.uniform(-0.5, 0.5, len(u)) * step
+    best = np.clip(best, min(inv[0], inv[-1]), max(inv[0], inv[-1]))
+    return _unproject(cams[c], u, v, 1.0 / best)

@@ -1,0 +1,52 @@
+"""Differentiable rendering for training: one `rasterize`, two backends.
+
+    rasterize(means, quats, scales, opacities, features, camera, backend="torch") -> RenderOutput
+    resolve_backend(name, device) -> "torch" or "gsplat"
+
+Backends: "torch" (stg_train.render.torch_splat, the readable reference, any device) and "gsplat"
+(stg_train.render.gsplat_backend, gsplat's CUDA kernels; imported only when used). Both follow
+formats/stg-v1.md, section 3, and return the same RenderOutput.
+"""
+from __future__ import annotations
+
+from torch import Tensor
+
+from .output import RenderOutput
+from .torch_splat import rasterize_torch
+
+BACKENDS = ("torch", "gsplat")
+
+__all__ = ["BACKENDS", "RenderOutput", "rasterize", "resolve_backend"]
+
+
+def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, features: Tensor, camera,
+              *, backend: str = "torch", **options) -> RenderOutput:
+    """Render M Gaussians (means (M, 3) world, quats (M, 4) wxyz, scales (M, 3) standard deviations,
+    opacities (M,) or (M, 1), features (M, C); one device and float dtype) seen by `camera` (a
+    stg_runtime Camera), differentiably. options: the torch backend's speed and memory settings
+    (rasterize_torch's tile_size, chunk, max_elements, checkpoint); the result never depends on them."""
+    if backend == "torch":
+        return rasterize_torch(means, quats, scales, opacities, features, camera, **options)
+    if backend == "gsplat":
+        from .gsplat_backend import rasterize_gsplat
+
+        return rasterize_gsplat(means, quats, scales, opacities, features, camera)
+    raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+
+
+def resolve_backend(name: str, device: str) -> str:
+    """The backend to train with, "torch" or "gsplat": "auto" picks gsplat when it can run on `device`
+    (installed, CUDA device present), else torch. Raises ValueError with the reason when "gsplat" is
+    asked for explicitly and cannot run."""
+    if name == "torch":
+        return "torch"
+    if name not in ("auto", "gsplat"):
+        raise ValueError(f"splatter must be auto, torch or gsplat, got {name!r}")
+    from .gsplat_backend import unavailable_reason
+
+    reason = unavailable_reason(device)
+    if name == "auto":
+        return "torch" if reason else "gsplat"
+    if reason:
+        raise ValueError(f"--splatter gsplat: {reason}; use --splatter torch or auto")
+    return "gsplat"

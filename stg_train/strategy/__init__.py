@@ -1,0 +1,14 @@
+"""Strategies: plug-ins that edit the Gaussians around backward() (gsplat's Strategy idea).
+
+    base       the Strategy protocol and StepContext, what a strategy sees of a step
+    schedule   when they act (the reference's schedule stretched to the run)
+    ops        append / keep / set Gaussians with their Adam state in step
+    density    DensityControl: clone, split, prune, opacity reset
+    guided     GuidedSampling: new Gaussians along the rays of high-error patches (the paper's Sec. 4.4)
+"""
+from .base import StepContext, Strategy
+from .density import DensityControl, Thresholds
+from .guided import GuidedSampling, GuidedSettings
+from .schedule import Schedule
+
+__all__ = ["DensityControl", "GuidedSampling", "GuidedSettings", "Schedule", "StepContext", "Strategy", "Thresholds"]

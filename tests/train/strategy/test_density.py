@@ -1,0 +1,103 @@
+"""stg_train.strategy.density: clone, split, prune, opacity reset and the schedule, on hand-made
+statistics (the full training loop is in tests/train/test_pipeline.py)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from stg_runtime.camera import Camera  # noqa: E402
+from stg_train.params import LearningRates, STGParams  # noqa: E402
+from stg_train.render import RenderOutput  # noqa: E402
+from stg_train.strategy import DensityControl, Schedule, StepContext, Thresholds  # noqa: E402
+
+
+def _setup(n=20, seed=0, extent=1.0, **schedule):
+    rng = np.random.default_rng(seed)
+    params = STGParams.from_points(rng.normal(size=(n, 3)) + [0, 0, 4], rng.uniform(0.1, 0.9, (n, 3)),
+                                   rng.uniform(0, 1, n), "lite", seed=seed)
+    optimizer = torch.optim.Adam(params.param_groups(LearningRates(), extent), eps=1e-15)
+    return params, optimizer, DensityControl(Schedule(**schedule), extent)
+
+
+def _set(params, optimizer, name, value):
+    from stg_train.strategy.ops import set_values
+    set_values(params, optimizer, name, torch.as_tensor(value, dtype=torch.float32))
+
+
+def test_prune_removes_faint_gaussians_and_their_statistics():
+    params, optimizer, dc = _setup()
+    logit = torch.full((20, 1), 0.0)
+    logit[[3, 7, 11]] = math.log(0.004 / 0.996)  # below prune_opacity 0.005
+    _set(params, optimizer, "opacity_logit", logit)
+    dc._fit(params.count)
+    dc.prune(params, optimizer, step=600)
+    assert params.count == 17 and dc.grad_sum.shape == (17,)
+    assert dc.log[-1] == {"step": 600, "pruned": 3, "count": 17}
+    assert torch.all(torch.sigmoid(params["opacity_logit"]) >= 0.005)
+
+
+def test_densify_clones_small_and_splits_large_hot_gaussians():
+    params, optimizer, dc = _setup(extent=1.0)
+    log_scale = torch.full((20, 3), math.log(0.005))  # small: <= percent_dense 0.01 x extent
+    log_scale[10:] = math.log(0.05)  # large
+    _set(params, optimizer, "log_scale", log_scale)
+    dc._fit(params.count)
+    hot = torch.zeros(20, dtype=torch.bool)
+    hot[[0, 1, 12, 13, 14]] = True  # 2 small, 3 large
+    dc.grad_sum[hot] = 10 * dc.thresholds.grad
+    dc.grad_count[:] = 10
+    parents = params["xyz"].detach()[[12, 13, 14]].clone()
+    torch.manual_seed(0)
+    dc.densify_and_prune(params, optimizer, step=600)
+    assert dc.log[-1] == {"step": 600, "cloned": 2, "split": 3, "pruned": 0, "count": 20 + 2 + 6 - 3}
+    xyz = params["xyz"].detach()
+    assert params.count == 25 and dc.grad_sum.shape == (25,) and torch.all(dc.grad_sum == 0)
+    # the split parents are gone; the children are scaled by 1 / split_scale around them
+    for p in parents:
+        assert not torch.any(torch.all(xyz == p, dim=1))
+    children = params["log_scale"].detach()[-6:]
+    torch.testing.assert_close(children, torch.full((6, 3), math.log(0.05) - math.log(1.6)))
+    # the clones copy their originals' positions
+    assert torch.equal(xyz[-8:-6], xyz[:2])
+
+
+def test_reset_opacity_caps_at_the_threshold():
+    params, optimizer, dc = _setup()
+    dc.reset_opacity(params, optimizer)
+    opacity = torch.sigmoid(params["opacity_logit"].detach())
+    assert torch.all(opacity <= Thresholds().reset_opacity + 1e-7)
+
+
+def test_screen_gradients_are_summed_over_views_in_ndc_units():
+    params, optimizer, dc = _setup(n=3)
+    camera = Camera(50, 50, 20, 15, 40, 30, np.eye(4))
+    means2d = torch.zeros(3, 2, requires_grad=True)
+    means2d.grad = torch.tensor([[1.0, 0.0], [0.0, 2.0], [0.0, 0.0]])
+    out = RenderOutput(None, None, None, means2d, torch.tensor([3, 4, 0]), torch.tensor([True, True, False]))
+    dc.accumulate([(camera, out), (camera, out)])
+    # pixels -> NDC: times (W/2, H/2); the two views' gradients add before the norm
+    torch.testing.assert_close(dc.grad_sum, torch.tensor([2 * 20.0, 2 * 2 * 15.0, 0.0]))
+    torch.testing.assert_close(dc.grad_count, torch.tensor([1.0, 1.0, 0.0]))
+    torch.testing.assert_close(dc.max_radius, torch.tensor([3.0, 4.0, 0.0]))
+
+
+def test_the_schedule_decides_when_to_act():
+    params, optimizer, dc = _setup(refine_start=2, refine_every=2, densify_rounds=1, prune_until=6, reset_every=0,
+                                   outside_at=0)
+    dc.thresholds = Thresholds(grad=1e9)  # nothing is hot: densification rounds only prune
+    context = StepContext(None, 0, 0.0, [], None, None)
+    for step in range(1, 9):
+        dc.step_post_backward(params, optimizer, step, context)
+    assert [entry["step"] for entry in dc.log] == [4, 6]  # after refine_start, every 2, until prune_until
+    assert "cloned" in dc.log[0] and "cloned" not in dc.log[1] and dc.rounds_done == 1
+
+
+def test_gaussians_removed_behind_its_back_are_an_error():
+    params, optimizer, dc = _setup()
+    dc._fit(20)
+    with pytest.raises(RuntimeError, match="removed outside DensityControl"):
+        dc._fit(19)
