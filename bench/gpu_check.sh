@@ -4,13 +4,13 @@
 #
 #   bash bench/gpu_check.sh [OUTDIR]      (default: $OUT if set, else out/gpu_check)
 #
-# 1. the GPU tests: tests/test_splat_cuda.py and tests/test_sort_cuda.py run their kernels on the GPU
-#    (not the simulator), and tests/test_cuda_launch.py;
+# 1. the GPU tests: tests/runtime/cuda/ (test_kernels.py and test_sort.py run their kernels on the GPU,
+#    not the simulator; test_launch.py, test_compile.py);
 # 2. bench/render.py --device cuda at the paper's N3V test size (200k Gaussians, 1352x1014): FPS of
 #    lite and full models, the steps, both device sorts and decoders; bench/gpu_profile.py: each
 #    kernel's GPU time against the frame's wall-clock time, and the host's cost per call;
 # 3. gsplat: its CUDA kernels are built (gsplat_build.log) in the background from the start, on the
-#    cores our steps leave idle; then tests/test_gsplat_backend.py compares it with the torch splatter,
+#    cores our steps leave idle; then tests/train/test_render_gsplat.py compares it with the torch splatter,
 #    and the render benchmark runs again with gsplat's rasterization beside ours;
 # 4. bench/train.py on the GPU with the torch splatter and with gsplat (a short run, both in train.log),
 #    if time is left and GPU_CHECK_TRAIN is not 0.
@@ -64,8 +64,7 @@ build=$!
 } 2>&1 | tee "$out/gpu.txt"
 
 # Ours first, so that gsplat's build cannot cost our figures.
-step 100 tests.log $py -m pytest -q -rs -p no:cacheprovider tests/test_splat_cuda.py tests/test_sort_cuda.py \
-    tests/test_cuda_launch.py
+step 100 tests.log $py -m pytest -q -rs -p no:cacheprovider tests/runtime/cuda
 status=$?
 step 80 render.log $py bench/render.py --device cuda --gaussians 200000 --size 1352x1014 --repeats 30 --no-gsplat
 step 60 profile.log $py bench/gpu_profile.py --gaussians 200000 --size 1352x1014
@@ -74,7 +73,7 @@ step 60 profile.log $py bench/gpu_profile.py --gaussians 200000 --size 1352x1014
 # benchmark again with gsplat beside ours.
 while kill -0 $build 2>/dev/null && ((SECONDS < budget - 120)); do sleep 2; done
 kill $build 2>/dev/null && echo "gsplat build stopped: out of time" >>"$out/gsplat_build.log"
-step 50 tests_gsplat.log $py -m pytest -q -rs -p no:cacheprovider tests/test_gsplat_backend.py
+step 50 tests_gsplat.log $py -m pytest -q -rs -p no:cacheprovider tests/train/test_render_gsplat.py
 step 70 render_gsplat.log $py bench/render.py --device cuda --gaussians 200000 --size 1352x1014 --repeats 20
 
 if [[ ${GPU_CHECK_TRAIN:-1} != 0 ]]; then

@@ -28,7 +28,6 @@ from stg_runtime.progress import progress_callback
 
 from .convert.merge import merge_files
 from .data import DataError, load_dataset
-from .data.points import default_method
 from .export import export_trainer
 from .metrics import evaluate_player, heldout
 from .segments import (SegmentError, check_plan, finished, missing_message, plan_segments, pooled, segment_dir,
@@ -78,9 +77,7 @@ def train(dataset, out, config: TrainConfig, resume: bool = False, quiet: bool =
     """Train (or resume) into `out`, export out/model.stg, evaluate it with the runtime and write
     out/metrics.json; returns the metrics. With segment_frames, a video of more frames (or any run
     naming `segments`, a list of indices) is trained segment by segment (train_segments).
-    config.init None: default_method(dataset). Raises DataError and SegmentError naming the problem."""
-    if config.init is None:
-        config.init = default_method(dataset)
+    Raises DataError and SegmentError naming the problem."""
     if segment_frames and (segments is not None or len(plan_segments(dataset.num_frames, segment_frames)) > 1):
         return train_segments(dataset, out, config, segment_frames, segments, resume, quiet, check)
     out = Path(out)
@@ -169,7 +166,7 @@ def train_segments(dataset, out, config: TrainConfig, segment_frames: int, indic
                "iterations": sum(p["iterations"] for p in per_segment),
                "train_seconds": sum(p["train_seconds"] for p in per_segment),
                "gaussians": sum(p["gaussians"] for p in per_segment), "file_bytes": file_bytes,
-               "export_check": worst_check(per_segment), "settings": asdict(config)}
+               "export_check": worst_check(per_segment), "settings": asdict(config.for_dataset(dataset))}
     _write_metrics(out, metrics)
     return metrics
 

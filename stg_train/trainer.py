@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import random
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Callable
 
@@ -25,7 +25,7 @@ from stg_runtime.atomic import atomic_output
 from stg_runtime.camera import Camera
 from stg_runtime.progress import Progress
 
-from .data.points import initial_points
+from .data.points import default_method, initial_points
 from .losses import loss_fn
 from .metrics import psnr_of_mse
 from .params import LearningRates, STGParams, extent_of, position_lr, view_inputs
@@ -41,7 +41,7 @@ class TrainConfig:
 
     model: "full" (9 features + decoder) or "lite" (rgb); iterations: optimisation steps; batch: views
     per step (one shared time); num_points: initial Gaussians (the most SfM points kept); init: where the
-    initial points come from, "sfm" (stg_train.data.sfm on every init_every-th frame, falling back to the
+    initial points come from (None: stg_train.data.points.default_method of the dataset), "sfm" (stg_train.data.sfm on every init_every-th frame, falling back to the
     view volume when SfM finds too few) or "volume" (stg_train.data.volume); depth_candidates:
     photo-consistency depth search of the view-volume points (0: uniform depths; see
     stg_train.data.volume.sample_view_volume); static: freeze the time terms (ablation); lr_scale: multiplies every
@@ -59,7 +59,7 @@ class TrainConfig:
     batch: int = 2
     num_points: int = 20000
     depth_candidates: int = 64
-    init: str = "volume"
+    init: str | None = None
     init_every: int = 1
     static: bool = False
     lr_scale: float = 1.0
@@ -71,6 +71,10 @@ class TrainConfig:
     splatter: str = "torch"
     guided: bool = True
     frozen: tuple = ()
+
+    def for_dataset(self, dataset) -> "TrainConfig":
+        """These settings with the choices left to the dataset made (init None: default_method)."""
+        return self if self.init is not None else replace(self, init=default_method(dataset))
 
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":
@@ -89,6 +93,7 @@ class Trainer:
 
     def __init__(self, dataset, config: TrainConfig, out_dir=None, _state: dict | None = None,
                  init_progress: Callable[[int, int], None] | None = None):
+        config = config.for_dataset(dataset)
         self.dataset, self.config = dataset, config
         self.out_dir = None if out_dir is None else Path(out_dir)
         self.device = torch.device(config.device)

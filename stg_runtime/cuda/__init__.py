@@ -10,6 +10,6 @@
     decoder    colour on the device: fused decoder, onnxruntime decoder, lite and SH colour
 
 The projection, the time evaluation and the SH colour are written once at the package's top level
-(stg_runtime.projection, timeeval, sh) and compiled for both targets. docs/gpu.md describes the path,
-its requirements and its measured speed.
+(stg_runtime.projection, timeeval, sh) and compiled for both targets. docs/gpu.md describes the path
+and its requirements, docs/performance.md its measured speed.
 """

@@ -3,7 +3,7 @@
     launch(kernel, griddim, blockdim, *args)      same as kernel[griddim, blockdim](*args)
 
 A plain numba launch types every argument, picks the compiled overload and converts each array into its
-kernel parameters, in Python, which can take longer than the kernel runs (docs/gpu.md has the measured
+kernel parameters, in Python, which can take longer than the kernel runs (docs/performance.md has the measured
 costs). `launch` does that work once per kernel, launch shape and set of arrays (recognised by
 identity, so callers keep their buffers from frame to frame) and scalar types, records the parameters
 numba passes to cuda.core's launch, and afterwards replays that launch directly. Scalar arguments are

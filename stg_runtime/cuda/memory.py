@@ -1,7 +1,7 @@
 """Device memory: buffers kept between frames, and inputs moved to (or found on) the device.
 
 With CuPy installed every buffer comes from CuPy's memory pool: numba's own allocations call cudaMalloc
-and cudaFree, and the frees synchronise the device (docs/gpu.md has the measured costs). Both libraries
+and cudaFree, and the frees synchronise the device (docs/performance.md has the measured costs). Both libraries
 use the default stream here, so their work is ordered.
 """
 from __future__ import annotations

@@ -27,7 +27,7 @@ pipeline (everything stays on the device, except where said):
    lists; one kernel is compiled per channel count, so its loops unroll). A block ends once all its
    pixels have stopped (syncthreads_count).
 
-What a frame costs on the host matters as much as the kernels (docs/gpu.md measures both): buffers are
+What a frame costs on the host matters as much as the kernels (docs/performance.md measures both): buffers are
 kept in a Workspace between frames (stg_runtime.cuda.memory), launches repeat with the same arrays and
 go through stg_runtime.cuda.launch, the camera is passed by value (camera_params), and the host waits
 for the device once, for the two counters.

@@ -207,7 +207,7 @@ def rasterize_torch(means: Tensor, quats: Tensor, scales: Tensor, opacities: Ten
     stg_runtime.camera.Camera (fixed, no gradient). All tensors on one device, one float dtype.
     tile_size, chunk, max_elements (tiles x pixels x chunk per batch) and checkpoint only change speed
     and memory, never the result; checkpoint=True recomputes each batch of tiles during backward
-    instead of keeping its intermediates (memory bounded by one batch, about 1.4x the time).
+    instead of keeping its intermediates (memory bounded by one batch, at more time: docs/performance.md).
     Returns a RenderOutput (features, alpha, depth, means2d, radii, visible).
     """
     W, H = camera.width, camera.height

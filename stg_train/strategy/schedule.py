@@ -16,7 +16,7 @@ class Schedule:
     reset_every: int = 3000  # opacity reset period; 0 disables
     reset_until: int = 9000
     outside_at: int = 10000  # remove Gaussians outside the initial box at this step; 0 disables
-    guided_start: int = 1600  # guided sampling (stg_train.guided): views chosen at this step, first sampling
+    guided_start: int = 1600  # guided sampling (strategy.guided): views chosen at this step, first sampling
     guided_every: int = 100  # steps between guided samplings (one per chosen view)
 
     @classmethod

@@ -8,6 +8,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
+from stg_runtime.atomic import TEMPORARY_PATTERN  # noqa: E402
 from stg_runtime.player import Player  # noqa: E402
 from stg_train.cli.eval import main as eval_main  # noqa: E402
 from stg_train.cli.train import main as train_main  # noqa: E402
@@ -124,7 +125,7 @@ def test_resume_after_kill_reaches_same_state(dataset, tmp_path):
     resumed.train(progress=False)
     assert straight.strategies[0].rounds_done == 2
     _assert_same_state(straight, resumed)
-    assert not list((tmp_path / "b").glob("*.tmp"))
+    assert not [p for p in (tmp_path / "b").iterdir() if TEMPORARY_PATTERN.match(p.name)]
 
 
 def test_cli_trains_and_evaluates(scene_dir, tmp_path, capsys):
