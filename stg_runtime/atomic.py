@@ -7,7 +7,9 @@
 Both write a temporary file in the same folder, fsync it and rename it over `path`; on any error the
 temporary file is removed and `path` is left as it was. Temporary files are named
 `.<stem>.<8 hex digits>.tmp<suffix>` (hidden, recognisable by TEMPORARY_PATTERN, suffix kept for
-libraries that choose a container by it), so that one left behind by a killed process can be found.
+libraries that choose a container by it), so that one left behind by a killed process can be found:
+remove_leftovers(folder) deletes them, and every writer of this project calls it when a run starts
+writing into a folder (a run's output folder, a cache folder, a render's frames).
 """
 from __future__ import annotations
 
@@ -18,14 +20,31 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
-#: The names temporary_path makes (a match is a leftover of an interrupted write).
-TEMPORARY_PATTERN = re.compile(r"^\..*\.[0-9a-f]{8}\.tmp(\.[^.]*)?$")
+#: The names temporary_path makes (a match is a leftover of an interrupted write); groups: the target's
+#: stem and suffix.
+TEMPORARY_PATTERN = re.compile(r"^\.(.*)\.[0-9a-f]{8}\.tmp(\.[^.]*)?$")
 
 
 def temporary_path(path) -> Path:
     """A new temporary name beside `path`: .<stem>.<8 hex digits>.tmp<suffix>."""
     path = Path(path)
     return path.with_name(f".{path.stem}.{secrets.token_hex(4)}.tmp{path.suffix}")
+
+
+def remove_leftovers(folder, name: str | None = None) -> int:
+    """Delete the temporary files of interrupted writes in `folder` (of the file called `name` only,
+    when given); returns how many. A folder that does not exist holds none."""
+    removed = 0
+    try:
+        entries = list(os.scandir(folder))
+    except (FileNotFoundError, NotADirectoryError):
+        return 0
+    for entry in entries:
+        match = TEMPORARY_PATTERN.match(entry.name)
+        if match and (name is None or match.group(1) + (match.group(2) or "") == name) and entry.is_file():
+            Path(entry.path).unlink(missing_ok=True)
+            removed += 1
+    return removed
 
 
 def _fsync(path: Path) -> None:

@@ -7,38 +7,37 @@ import numpy as np
 import onnxruntime as ort
 
 from .camera import Camera
-from .onnx_mlp import check_graph
+from .onnx_mlp import read_mlp
 
 
 def activate(x: np.ndarray, activation: str) -> np.ndarray:
     """The decoder's output activation, then clamped to [0, 1] for display."""
     if activation == "sigmoid":
-        x = 1.0 / (1.0 + np.exp(-x))
+        with np.errstate(over="ignore"):  # exp(-x) = inf for very negative x: sigmoid 0, as it should
+            x = 1.0 / (1.0 + np.exp(-x))
     return np.clip(x, 0.0, 1.0, out=x)
 
 
 class OnnxDecoder:
-    """Runs a segment's ONNX decoder with onnxruntime (on the CPU unless `providers` says otherwise).
+    """Runs a segment's decoder with onnxruntime (on the CPU unless `providers` says otherwise).
 
-    onnx_bytes: a graph with one float32 input (P, C + 3) and one float32 output (P, 3), where C is the
-    feature channel count; activation: "sigmoid", "clamp" or "identity". The input rows are
-    [F[3:], camera centre, unit ray direction] (formats/stg-v1.md, section 2).
+    onnx_bytes: a decoder graph of formats/stg-v1.md (the MLP family, stg_runtime.onnx_mlp.read_mlp;
+    ValueError otherwise), input (P, C + 3), output (P, 3), C the feature channel count; onnxruntime gets
+    the graph re-serialised from its description, never these bytes. activation: "sigmoid", "clamp" or
+    "identity". The input rows are [F[3:], camera centre, unit ray direction] (section 2).
     """
 
     def __init__(self, onnx_bytes: bytes, activation: str, threads: int = 0,
                  providers: tuple[str, ...] = ("CPUExecutionProvider",)):
-        check_graph(onnx_bytes)
+        mlp = read_mlp(onnx_bytes)
+        if mlp.output_width != 3:
+            raise ValueError(f"decoder output must be (pixels, 3), got width {mlp.output_width}")
         options = ort.SessionOptions()
         options.intra_op_num_threads = threads
         options.log_severity_level = 3
-        self.session = ort.InferenceSession(onnx_bytes, options, providers=list(providers))
-        (inp,), (out,) = self.session.get_inputs(), self.session.get_outputs()
-        if len(inp.shape) != 2 or not isinstance(inp.shape[1], int):
-            raise ValueError(f"decoder input must be (pixels, channels), got shape {inp.shape}")
-        if len(out.shape) != 2 or out.shape[1] != 3:
-            raise ValueError(f"decoder output must be (pixels, 3), got shape {out.shape}")
-        self.input_name, self.input_channels = inp.name, inp.shape[1]
-        self.output_name = out.name
+        self.session = ort.InferenceSession(mlp.to_onnx(), options, providers=list(providers))
+        self.input_name, self.input_channels = "x", mlp.input_width
+        self.output_name = "y"
         self.activation = activation
         self._view_inputs: dict = {}  # per camera: (H*W, 6) [camera centre, ray direction], reused over time
 

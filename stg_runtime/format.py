@@ -12,6 +12,7 @@ import math
 import os
 import struct
 import zlib
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -31,6 +32,30 @@ CODECS = ("raw", "zlib")
 
 class FormatError(ValueError):
     """A file that is not a valid .stg file; the message starts with the file's name."""
+
+
+@dataclass(frozen=True)
+class Limits:
+    """What a file may declare, checked before anything large is allocated (formats/stg-v1.md, "Limits").
+
+    The defaults hold the models this project makes with room to spare; to open an honest bigger model,
+    pass larger ones: load(path, limits=Limits(max_gaussians=...)), or Player(path, limits=...).
+    max_gaussians: per segment; max_segments; max_frames: of the whole video; max_degree: of the
+    position and rotation polynomials; decoded arrays may take at most max_expansion x the file's size
+    plus expansion_allowance bytes (a zlib bomb cannot make a small file large in memory);
+    max_image_side: a stored camera's width and height, in pixels.
+    """
+
+    max_gaussians: int = 1 << 24
+    max_segments: int = 4096
+    max_frames: int = 1 << 24
+    max_degree: int = 8
+    max_expansion: float = 64.0
+    expansion_allowance: int = 64 << 20
+    max_image_side: int = 16384
+
+
+DEFAULT_LIMITS = Limits()
 
 
 # -- quantization (spec table "Quantization and its error bounds") --------------------------------
@@ -84,10 +109,11 @@ def dequantize(stored: np.ndarray, encoding: str, params: dict | None = None) ->
     if encoding not in ENCODINGS:
         raise ValueError(f"unknown encoding {encoding!r}")
     q = _channels(stored)
-    offset, scale = (np.asarray((params or {}).get(k), np.float32).astype(np.float64) for k in ("offset", "scale"))
+    with np.errstate(over="ignore"):  # numbers beyond float32 become inf, which readers refuse
+        offset, scale = (np.asarray((params or {}).get(k), np.float32).astype(np.float64) for k in ("offset", "scale"))
     if offset.shape != (q.shape[1],) or scale.shape != (q.shape[1],):
         raise ValueError(f"{encoding} needs lists 'offset' and 'scale' of {q.shape[1]} numbers")
-    with np.errstate(over="ignore"):  # values beyond float32 become inf, which readers refuse
+    with np.errstate(over="ignore", invalid="ignore"):  # values beyond float32 become inf or nan: refused
         return (offset + scale * q).astype(np.float32).reshape(stored.shape)
 
 
@@ -196,17 +222,18 @@ def save(model: Model, path, encodings: dict[str, str] | None = None, codec: str
 # -- reading ------------------------------------------------------------------------------------
 
 
-def load(path) -> Model:
-    """Read a .stg file. Raises FormatError for any problem with its contents (OSError if unreadable)."""
+def load(path, limits: Limits = DEFAULT_LIMITS) -> Model:
+    """Read a .stg file. Raises FormatError for any problem with its contents, including declarations
+    beyond `limits` (OSError if unreadable)."""
     with open(path, "rb") as f:
         data = f.read()
-    return loads(data, os.fsdecode(path))
+    return loads(data, os.fsdecode(path), limits)
 
 
-def loads(data: bytes, name: str = "<bytes>") -> Model:
+def loads(data: bytes, name: str = "<bytes>", limits: Limits = DEFAULT_LIMITS) -> Model:
     """Read a .stg file from bytes; `name` starts every FormatError message."""
     try:
-        return _decode(memoryview(data).cast("B"))
+        return _decode(memoryview(data).cast("B"), limits)
     except ValueError as e:  # includes json, UTF-8 and onnx_mlp errors
         raise FormatError(f"{name}: {e}") from e
     except (KeyError, TypeError, IndexError, OverflowError, RecursionError, struct.error, zlib.error) as e:
@@ -223,7 +250,7 @@ def _get(obj: dict, key: str, kind: type, where: str):
     return value
 
 
-def _decode(buf: memoryview) -> Model:
+def _decode(buf: memoryview, limits: Limits) -> Model:
     if len(buf) < PREFIX.size:
         raise ValueError(f"truncated: {len(buf)} bytes, shorter than the {PREFIX.size}-byte prefix")
     magic, major, minor, length = PREFIX.unpack_from(buf)
@@ -246,16 +273,20 @@ def _decode(buf: memoryview) -> Model:
     if kind not in KINDS:
         raise ValueError(f"header: unknown model kind {kind!r} in a version {major}.{minor} file (this reader, "
                          f"version {VERSION[0]}.{VERSION[1]}, renders {', '.join(KINDS)}; a newer one may read it)")
-    segments = [_segment(s, f"segment {i}", kind, section)
-                for i, s in enumerate(_get(header, "segments", list, "header"))]
-    if not segments:
+    entries = _get(header, "segments", list, "header")
+    if not entries:
         raise ValueError("header: no segments")
+    if len(entries) > limits.max_segments:
+        raise ValueError(f"header: {len(entries)} segments, more than the reader's limit of {limits.max_segments}")
+    layouts = [_layout(s, f"segment {i}", kind, limits) for i, s in enumerate(entries)]
+    _check_sizes(layouts, len(buf), limits)
+    segments = [_segment(s, f"segment {i}", layout, section) for i, (s, layout) in enumerate(zip(entries, layouts))]
     if _get(header, "num_frames", int, "header") != sum(s.num_frames for s in segments):
         raise ValueError(f"header: num_frames {header['num_frames']} is not the segments' total")
     cameras = []
     for i, c in enumerate(_get(header, "cameras", list, "header") if "cameras" in header else []):
         try:
-            cameras.append(Camera.from_dict(c))
+            cameras.append(_camera(Camera.from_dict(c), limits))
         except (KeyError, TypeError, ValueError) as e:
             raise ValueError(f"camera {i}: invalid ({type(e).__name__}: {e})") from e
     bounds = header.get("bounds")
@@ -267,22 +298,70 @@ def _decode(buf: memoryview) -> Model:
     provenance = header.get("provenance", {})
     if not isinstance(provenance, dict):
         raise ValueError("header: provenance must be an object")
-    return Model(kind, _get(header, "fps", float, "header"), segments, cameras, bounds, provenance)
+    fps = _get(header, "fps", float, "header")
+    if not 1e-3 <= fps <= 1e6:
+        raise ValueError(f"header: fps {fps} is outside [0.001, 1000000]")
+    return Model(kind, fps, segments, cameras, bounds, provenance)
 
 
-def _segment(s, where: str, kind: str, section: memoryview) -> Segment:
+def _camera(camera: Camera, limits: Limits) -> Camera:
+    """`camera` when a renderer can use it: image sides within limits.max_image_side, focal lengths in
+    [1e-3, 1e9] pixels, a finite principal point, a rotation (orthonormal within 1e-4, determinant +1) and
+    a finite translation; ValueError otherwise."""
+    side = limits.max_image_side
+    if camera.width > side or camera.height > side:
+        raise ValueError(f"image size {camera.width}x{camera.height} exceeds the reader's limit of {side} pixels")
+    if not (1e-3 <= camera.fx <= 1e9 and 1e-3 <= camera.fy <= 1e9):
+        raise ValueError(f"focal lengths fx={camera.fx:g}, fy={camera.fy:g} outside [1e-3, 1e9] pixels")
+    if not (abs(camera.cx) <= 1e9 and abs(camera.cy) <= 1e9):
+        raise ValueError(f"principal point ({camera.cx:g}, {camera.cy:g}) is not within 1e9 pixels")
+    w2c = camera.world_to_camera
+    with np.errstate(over="ignore", invalid="ignore"):  # huge entries: inf or nan, which fail the test
+        rigid = (np.abs(w2c[:3, :3] @ w2c[:3, :3].T - np.eye(3)).max() <= 1e-4 and np.linalg.det(w2c[:3, :3]) > 0
+                 and np.all(w2c[3] == [0, 0, 0, 1]) and np.abs(w2c[:3, 3]).max() <= 1e12)
+    if not rigid:
+        raise ValueError("world_to_camera is not a rigid transform (rotation, translation, last row 0 0 0 1)")
+    return camera
+
+
+def _layout(s, where: str, kind: str, limits: Limits) -> tuple:
+    """(start_frame, num_frames, count, position_degree, rotation_degree, channels) of a segment entry,
+    checked against `limits` before any of its data is read."""
     if not isinstance(s, dict):
         raise ValueError(f"{where}: not a JSON object")
     start, frames, count, pdeg, qdeg = (_get(s, k, int, where) for k in
                                         ("start_frame", "num_frames", "count", "position_degree", "rotation_degree"))
     if min(start, count, pdeg, qdeg) < 0 or frames <= 0:
         raise ValueError(f"{where}: negative count/degree/start_frame or num_frames <= 0")
+    if count > limits.max_gaussians:
+        raise ValueError(f"{where}: {count} Gaussians, more than the reader's limit of {limits.max_gaussians} "
+                         "(stg_runtime.format.Limits)")
+    if max(pdeg, qdeg) > limits.max_degree:
+        raise ValueError(f"{where}: polynomial degrees {pdeg}, {qdeg} beyond the reader's limit of {limits.max_degree}")
+    if start + frames > limits.max_frames:
+        raise ValueError(f"{where}: frames up to {start + frames}, beyond the reader's limit of {limits.max_frames}")
     attributes = _get(s, "attributes", dict, where)
-    arrays = {}
     for name in ATTRIBUTES:
         if name not in attributes:
             raise ValueError(f"{where}: missing attribute {name!r}")
     channels = _feature_channels(attributes["features"], kind, f"{where}, attribute 'features'")
+    return start, frames, count, pdeg, qdeg, channels
+
+
+def _check_sizes(layouts: list, file_size: int, limits: Limits) -> None:
+    """Refuse files whose arrays would decode to more than the limits allow (before decoding any)."""
+    values = sum(math.prod(attribute_shape(name, count, pdeg, qdeg, channels))
+                 for _, _, count, pdeg, qdeg, channels in layouts for name in ATTRIBUTES)
+    allowed = limits.max_expansion * file_size + limits.expansion_allowance
+    if 4 * values > allowed:
+        raise ValueError(f"the arrays would take {4 * values} bytes in memory, more than the reader allows for a "
+                         f"{file_size}-byte file ({allowed:.0f}; stg_runtime.format.Limits)")
+
+
+def _segment(s: dict, where: str, layout: tuple, section: memoryview) -> Segment:
+    start, frames, count, pdeg, qdeg, channels = layout
+    attributes = s["attributes"]
+    arrays = {}
     for name in ATTRIBUTES:
         shape = attribute_shape(name, count, pdeg, qdeg, channels)
         arrays[name] = _array(attributes[name], shape, section, f"{where}, attribute {name!r}")
@@ -295,7 +374,7 @@ def _segment(s, where: str, kind: str, section: memoryview) -> Segment:
             raise ValueError(f"{where}, decoder: activation must be one of {ACTIVATIONS}, got {activation!r}")
         decoder = bytes(_blob(_get(decoder, "data", dict, f"{where}, decoder"), section, None, f"{where}, decoder"))
         try:
-            onnx_mlp.check_graph(decoder)
+            decoder = onnx_mlp.canonical(decoder)  # the MLP family only (formats/stg-v1.md, section 2)
         except ValueError as e:
             raise ValueError(f"{where}, decoder: {e}") from e
     try:

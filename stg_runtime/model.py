@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .camera import Camera
+from .onnx_mlp import canonical, read_mlp
 
 KINDS = ("lite", "full", "sh")
 ACTIVATIONS = ("sigmoid", "clamp", "identity")
@@ -61,7 +62,9 @@ class Segment:
     position (N, P+1, 3) polynomial coefficients; rotation (N, Q+1, 4) quaternion coefficients (wxyz);
     scale (N, 3) standard deviations; features (N, C): C = 3 (lite), 9 (full) or 3 (d+1)^2 (sh: SH
     coefficients of degree d, coefficient-major, see stg_runtime/sh.py).
-    decoder: ONNX bytes (full models) or None; activation: how the decoder output becomes rgb.
+    decoder: ONNX bytes of a decoder graph (full models; formats/stg-v1.md, the MLP family) or None,
+    kept in canonical form (stg_runtime.onnx_mlp.canonical: parsed and re-serialised, so that nothing but
+    a valid decoder can ever reach onnxruntime); activation: how the decoder output becomes rgb.
     """
 
     start_frame: int
@@ -80,6 +83,11 @@ class Segment:
         for name in ATTRIBUTES:
             setattr(self, name, np.ascontiguousarray(getattr(self, name), dtype=np.float32))
         self.start_frame, self.num_frames = int(self.start_frame), int(self.num_frames)
+        if self.decoder is not None:
+            try:
+                self.decoder = canonical(bytes(self.decoder))
+            except ValueError as e:
+                raise ValueError(f"segment: decoder: {e}") from None
         self.validate()
 
     @property
@@ -115,6 +123,11 @@ class Segment:
                 raise ValueError(f"segment: attribute {name} has shape {got}, expected {want}")
             if not np.all(np.isfinite(getattr(self, name))):
                 raise ValueError(f"segment: attribute {name} has non-finite values")
+        if self.decoder is not None:
+            mlp = read_mlp(self.decoder)
+            if (mlp.input_width, mlp.output_width) != (self.channels + 3, 3):
+                raise ValueError(f"segment: the decoder maps {mlp.input_width} -> {mlp.output_width} channels; "
+                                 f"with {self.channels} features it must map {self.channels + 3} -> 3")
         if self.activation not in ACTIVATIONS:
             raise ValueError(f"segment: activation must be one of {ACTIVATIONS}, got {self.activation!r}")
 

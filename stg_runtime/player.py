@@ -1,6 +1,7 @@
 """`Player`: open a `.stg` model and render it from any camera at any time."""
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import NamedTuple, Sequence
 
@@ -17,6 +18,11 @@ from .timeeval import evaluate
 from .video import FrameWriter
 
 DEVICES = ("cpu", "cuda", "auto")
+
+
+class RenderError(RuntimeError):
+    """Rendering a loaded model failed (onnxruntime, memory, a non-finite image, ...); the message starts
+    with the model's file name (or "<model>") and says at what time and why."""
 
 
 class Rendered(NamedTuple):
@@ -47,14 +53,18 @@ def _resolve_device(device: str) -> str:
 class Player:
     """Plays a Spacetime Gaussian model.
 
-    source: path of a `.stg` file, or a `Model`. device: "cpu", "cuda" (numba.cuda kernels, see
-    stg_runtime.cuda; RuntimeError when numba sees no GPU) or "auto" ("cuda" when numba sees a GPU,
-    else "cpu"). Times are in seconds of the video (frame k is shown at k / fps).
+    source: path of a `.stg` file (read with stg_runtime.format.load and `limits`: FormatError for a bad
+    file), or a `Model`. device: "cpu", "cuda" (numba.cuda kernels, see stg_runtime.cuda; RuntimeError
+    when numba sees no GPU) or "auto" ("cuda" when numba sees a GPU, else "cpu"). Times are in seconds
+    of the video (frame k is shown at k / fps). A render that fails raises RenderError; bad arguments
+    (a time outside the model's span, say) raise ValueError.
     """
 
-    def __init__(self, source: str | Path | Model, device: str = "auto"):
+    def __init__(self, source: str | Path | Model, device: str = "auto",
+                 limits: stg_format.Limits = stg_format.DEFAULT_LIMITS):
         self.device = _resolve_device(device)
-        self.model = source if isinstance(source, Model) else stg_format.load(source)
+        self.model = source if isinstance(source, Model) else stg_format.load(source, limits)
+        self.name = "<model>" if isinstance(source, Model) else os.fsdecode(source)
         self._decoders: dict[int, OnnxDecoder] = {}
         self._device_decoders: dict[int, object] = {}  # device "cuda": per segment, Fused/OnnxDeviceDecoder
         self._device_segments: dict[int, object] = {}  # device "cuda": per segment, its DeviceSegment
@@ -114,6 +124,16 @@ class Player:
         if not (self.start_time - 1e-9 <= t <= end + 1e-9):
             raise ValueError(f"t = {t} s is outside the model's time span [{self.start_time}, {end}] s")
         segment, tau = self.model.segment_at(t)
+        try:
+            rendered = self._render(segment, tau, camera, out)
+        except Exception as e:  # noqa: BLE001 - any failure of a render is reported as one, naming the file
+            raise RenderError(f"{self.name}: rendering t = {t} s failed ({type(e).__name__}: {e})") from e
+        if out == "host" and not np.all(np.isfinite(rendered.rgb)):
+            raise RenderError(f"{self.name}: the image at t = {t} s has non-finite values")
+        return rendered
+
+    def _render(self, segment: Segment, tau: float, camera: Camera, out: str) -> Rendered:
+        """render_all's work on the CPU (numba splatter, onnxruntime decoder) or the GPU."""
         if self.device == "cuda":
             return self._render_cuda(segment, tau, camera, out)
         g = evaluate(segment, tau)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import temporary_path, write_atomic
+from .atomic import remove_leftovers, temporary_path, write_atomic
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv")
 
@@ -50,6 +50,7 @@ class FrameWriter:
                 raise RuntimeError(f"{self.path}: writing video needs OpenCV (pip install opencv-python-headless); "
                                    "or give a folder name to write PNG frames") from None
             self.path.parent.mkdir(parents=True, exist_ok=True)
+            remove_leftovers(self.path.parent, self.path.name)  # of an interrupted render of this video
             self.tmp = temporary_path(self.path)
             fourcc = cv2.VideoWriter_fourcc(*("mp4v" if self.path.suffix.lower() != ".avi" else "MJPG"))
             self.video = cv2.VideoWriter(str(self.tmp), fourcc, float(fps), (width, height))
@@ -58,6 +59,7 @@ class FrameWriter:
             self._bgr = lambda rgb: cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
         else:
             self.path.mkdir(parents=True, exist_ok=True)
+            remove_leftovers(self.path)  # frames of an interrupted render
 
     def write(self, image: np.ndarray) -> None:
         """image: (H, W, 3) float32 in [0, 1]."""

@@ -21,7 +21,7 @@ from typing import Sequence
 
 import numpy as np
 
-from stg_runtime.atomic import write_atomic
+from stg_runtime.atomic import remove_leftovers, write_atomic
 from stg_runtime.camera import orbit
 from stg_runtime.player import Player
 from stg_runtime.progress import progress_callback
@@ -82,6 +82,7 @@ def train(dataset, out, config: TrainConfig, resume: bool = False, quiet: bool =
         return train_segments(dataset, out, config, segment_frames, segments, resume, quiet, check)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    remove_leftovers(out)  # of a killed run: its checkpoint, model or metrics being written
     ckpt = out / "checkpoint.pt"
     if resume and ckpt.exists():
         trainer = Trainer.resume(dataset, ckpt, out_dir=out, device=config.device, splatter=config.splatter)
@@ -121,6 +122,8 @@ def train_segments(dataset, out, config: TrainConfig, segment_frames: int, indic
                            f"{len(plan)} segment{'s' if len(plan) > 1 else ''} of {segment_frames} frames "
                            f"(indices 0-{len(plan) - 1})")
     check_plan(out, plan, segment_frames)
+    remove_leftovers(out)
+    remove_leftovers(out / "segments")
     folders = [segment_dir(out, s.index, len(plan)) for s in plan]
     for i in chosen:
         span, folder = plan[i], folders[i]

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from stg_runtime.atomic import atomic_output
+from stg_runtime.atomic import atomic_output, remove_leftovers
 from stg_runtime.camera import Camera
 from stg_runtime.progress import Progress
 
@@ -96,6 +96,8 @@ class Trainer:
         config = config.for_dataset(dataset)
         self.dataset, self.config = dataset, config
         self.out_dir = None if out_dir is None else Path(out_dir)
+        if self.out_dir is not None:
+            remove_leftovers(self.out_dir, "checkpoint.pt")  # of a run killed while saving
         self.device = torch.device(config.device)
         self.extent = extent_of([dataset.cameras[i] for i in dataset.train_cameras])
         self.lr = LearningRates().scaled(config.lr_scale)

@@ -27,7 +27,7 @@ from numba import cuda
 from ..camera import Camera
 from ..decoder import OnnxDecoder
 from ..model import sh_degree_of
-from ..onnx_mlp import mlp_weights
+from ..onnx_mlp import read_mlp
 from ..projection import camera_params
 from ..sh import sh_colour_at
 from .device import simulated
@@ -156,8 +156,8 @@ def sh_colours(coeffs_d, means_d, camera: Camera, out=None):
 
 
 class FusedDecoder:
-    """The full model's decoder on the device: weights [W1 (6, 12), W2 (3, 6)] as given by
-    onnx_mlp.mlp_weights (the format's 12 -> 6 -> 3 MatMul/Relu graph), activation "sigmoid", "clamp"
+    """The full model's decoder on the device: weights [W1 (6, 12), W2 (3, 6)] of a bias-free
+    onnx_mlp.MLP (the format's reference 12 -> 6 -> 3 graph), activation "sigmoid", "clamp"
     or "identity" (the last two: clamped to [0, 1] only)."""
 
     def __init__(self, weights, activation: str):
@@ -170,11 +170,13 @@ class FusedDecoder:
 
     @classmethod
     def from_onnx(cls, onnx_bytes: bytes, activation: str):
-        """A FusedDecoder, or None if the graph is not the 12 -> 6 -> 3 MatMul/Relu shape."""
-        weights = mlp_weights(onnx_bytes)
-        if weights is None or len(weights) != 2 or weights[0].shape != (6, 12) or weights[1].shape != (3, 6):
+        """A FusedDecoder, or None if the decoder is not the bias-free 12 -> 6 -> 3 MLP (ValueError for
+        bytes that are no valid decoder)."""
+        mlp = read_mlp(onnx_bytes)
+        shapes = [w.shape for w in mlp.weights]
+        if shapes != [(6, 12), (3, 6)] or any(b is not None for b in mlp.biases):
             return None
-        return cls(weights, activation)
+        return cls(list(mlp.weights), activation)
 
     def __call__(self, features_d, camera: Camera, out=None):
         """Device (H, W, 9) features -> device (H, W, 3) rgb in [0, 1]."""

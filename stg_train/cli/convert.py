@@ -12,8 +12,10 @@ import sys
 import warnings
 
 from stg_runtime import format as stg_format
+from stg_runtime.atomic import remove_leftovers
 from stg_runtime.format import FormatError
 from stg_runtime.model import ACTIVATIONS, ATTRIBUTES
+from stg_runtime.player import RenderError
 
 from ..convert.compress import PRESETS, compress_file, parse_encodings
 from ..convert.gaussians3d import export_ply, import_3dgs_ply
@@ -53,10 +55,12 @@ def _file_error(path, e: OSError) -> str:
 
 
 def _writable(path) -> str:
-    """`path` if its folder exists (checked before any work); ValueError naming it otherwise."""
+    """`path` if its folder exists (checked before any work; leftovers of an interrupted write of it are
+    removed); ValueError naming it otherwise."""
     folder = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(folder):
         raise ValueError(f"{path}: cannot write: the folder {folder} does not exist")
+    remove_leftovers(folder, os.path.basename(path))
     return path
 
 
@@ -168,7 +172,7 @@ def main(argv=None) -> int:
                 "export-ply": _export_ply, "merge": _merge}
     try:
         return handlers[args.command](args, parser)
-    except (FormatError, PLYError, DataError, ValueError) as e:
+    except (FormatError, PLYError, DataError, RenderError, ValueError) as e:
         return error(PROG, str(e))
     except OSError as e:
         return error(PROG, _file_error("", e))

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from stg_runtime.atomic import write_atomic
 from stg_runtime.format import FormatError
-from stg_runtime.player import Player
+from stg_runtime.player import Player, RenderError
 
 from ..data import DataError, load_dataset
 from ..metrics import evaluate_player, heldout
@@ -48,7 +48,10 @@ def main(argv=None) -> int:
     if len(frames) < dataset.num_frames:  # a model of some segments only (stg-train --segments)
         print(f"{PROG}: {args.model} covers frames {frames.start}-{frames.stop - 1} of the dataset's "
               f"{dataset.num_frames}: evaluating those", file=sys.stderr)
-    result = evaluate_player(player, dataset, frames=frames)
+    try:
+        result = evaluate_player(player, dataset, frames=frames)
+    except RenderError as e:
+        return error(PROG, str(e))
     size = Path(args.model).stat().st_size
     count = sum(s.count for s in player.model.segments)
     print(format_table(result, size, count))

@@ -6,6 +6,8 @@ import sys
 import time
 from pathlib import Path
 
+from stg_runtime.player import RenderError
+
 from ..data import DataError, load_dataset
 from ..data.points import METHODS
 from ..pipeline import DEMO_SCENE, DEMO_TRAINING, run_demo, train
@@ -152,7 +154,7 @@ def main(argv=None) -> int:
         else:
             dataset = load_dataset(args.data, **dataset_options(args))
             metrics = train(dataset, Path(args.out), config, **options)
-    except (DataError, SegmentError) as e:
+    except (DataError, SegmentError, RenderError) as e:
         return error(PROG, str(e))
     if metrics.get("missing_segments"):
         return 0  # OUT/model.stg waits for the other segments (the pipeline said which)

@@ -20,7 +20,7 @@ from stg_runtime.spec import MIN_ALPHA
 from stg_runtime.spec import SH_C0 as C0
 from stg_runtime.timeeval import evaluate
 
-from .ply import PLYError, read_ply, require, write_ply
+from .ply import PLYError, float32_values, read_ply, require, write_ply
 
 BASE = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
         "rot_0", "rot_1", "rot_2", "rot_3"]
@@ -63,13 +63,7 @@ def import_3dgs_ply(path, fps: float = 30.0, num_frames: int = 1, cameras=None) 
     if len(rest) not in REST_DEGREES or rest != [f"f_rest_{i}" for i in range(len(rest))]:
         raise PLYError(f"{name}: {len(rest)} f_rest_* properties; expected f_rest_0.. with 0, 9, 24 or 45 "
                        "of them (SH degree 0, 1, 2 or 3)")
-    values = {}
-    for p in BASE + rest:
-        v = props[p].astype(np.float64)
-        bad = np.count_nonzero(~np.isfinite(v))
-        if bad:
-            raise PLYError(f"{name}: property {p!r} has {bad} non-finite values")
-        values[p] = v
+    values = float32_values(props, BASE + rest, path)
 
     def stack(names):
         return np.stack([values[p] for p in names], axis=1) if names else np.zeros((count, 0))
@@ -77,7 +71,9 @@ def import_3dgs_ply(path, fps: float = 30.0, num_frames: int = 1, cameras=None) 
     with np.errstate(over="ignore"):
         opacity = 1.0 / (1.0 + np.exp(-values["opacity"]))
         scale = np.exp(stack(["scale_0", "scale_1", "scale_2"]))
-    if not np.all(np.isfinite(scale.astype(np.float32))):
+    with np.errstate(over="ignore"):
+        finite = np.all(np.isfinite(scale.astype(np.float32)))
+    if not finite:
         raise PLYError(f"{name}: scale_* values too large (exp overflows float32)")
     quat = stack(["rot_0", "rot_1", "rot_2", "rot_3"])
     norm = np.linalg.norm(quat, axis=1, keepdims=True)

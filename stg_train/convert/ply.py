@@ -37,6 +37,22 @@ def require(props: dict, names, path) -> None:
         raise PLYError(f"{os.fsdecode(path)}: missing vertex properties: {', '.join(missing)}")
 
 
+def float32_values(props: dict, names, path) -> dict[str, np.ndarray]:
+    """{name: (N,) float64} of properties `names`, every value finite and within float32's range (what a
+    model can store); PLYError naming `path` and the property otherwise."""
+    limit = float(np.finfo(np.float32).max)
+    out = {}
+    for name in names:
+        with np.errstate(invalid="ignore", over="ignore"):
+            values = props[name].astype(np.float64)
+        bad = np.count_nonzero(~(np.abs(values) <= limit))  # NaN, inf, and beyond float32
+        if bad:
+            raise PLYError(f"{os.fsdecode(path)}: property {name!r} has values that are not finite float32 "
+                           f"numbers ({bad} of {values.size})")
+        out[name] = values
+    return out
+
+
 def _parse_header(f, name: str) -> tuple[str, list]:
     """-> (format, [(element name, count, [(property, dtype) or (property, None) for lists])])."""
     first = f.readline(16)
@@ -118,12 +134,20 @@ def read_ply(path) -> tuple[dict[str, np.ndarray], int]:
 
 
 def _read_binary(f, name, order, before, count, props) -> dict[str, np.ndarray]:
+    left = os.fstat(f.fileno()).st_size - f.tell()  # what the file holds after the header
     for elem, n, eprops in before:
         if any(dt is None for _, dt in eprops):
             raise PLYError(f"{name}: cannot skip element {elem!r} with list properties before 'vertex'")
-        f.seek(n * sum(dt.itemsize for _, dt in eprops), os.SEEK_CUR)
+        size = n * sum(dt.itemsize for _, dt in eprops)
+        if size > left:
+            raise PLYError(f"{name}: truncated: element {elem!r} declares {n} rows ({size} bytes), the file has "
+                           f"{left} bytes after the header")
+        f.seek(size, os.SEEK_CUR)
+        left -= size
     row = np.dtype([(p, dt.newbyteorder(order)) for p, dt in props])
     want = count * row.itemsize
+    if want > left:
+        raise PLYError(f"{name}: truncated: {count} vertices need {want} bytes of vertex data, the file has {left}")
     data = f.read(want)
     if len(data) < want:
         raise PLYError(f"{name}: truncated: {count} vertices need {want} bytes of vertex data, "
@@ -149,9 +173,12 @@ def _read_ascii(f, name, before, count, props) -> dict[str, np.ndarray]:
             values = text[:, j].astype(np.float64)
             if dt.kind in "iu" and not np.all(values == np.round(values)):
                 raise ValueError("not an integer")
+            if dt.kind in "iu" and not np.all((values >= np.iinfo(dt).min) & (values <= np.iinfo(dt).max)):
+                raise ValueError("out of range")
         except ValueError as e:
             raise PLYError(f"{name}: property {p!r} has a value that is not a {TYPE_NAMES[dt.str[1:]]} ({e})") from None
-        columns[p] = values.astype(dt)
+        with np.errstate(over="ignore"):  # a float beyond float32 is stored as inf, as a binary file holds it
+            columns[p] = values.astype(dt)
     return columns
 
 

@@ -28,7 +28,7 @@ from stg_runtime.model import ACTIVATIONS, Model, Segment
 from stg_runtime.onnx_mlp import mlp_to_onnx
 
 from ..raw import to_file_arrays
-from .ply import PLYError, read_ply, require
+from .ply import float32_values, read_ply, require
 
 #: The reference's time normaliser: frame j of a segment is at t = j / REFERENCE_FRAMES.
 REFERENCE_FRAMES = 50
@@ -46,15 +46,11 @@ class ReferenceModelError(ValueError):
 
 def read_reference_ply(path) -> tuple[str, dict[str, np.ndarray]]:
     """("full" or "lite", {property: (N,) float64}) of a reference PLY. Raises PLYError naming the file
-    (not a PLY, truncated, missing properties, non-finite values)."""
+    (not a PLY, truncated, missing properties, values that are not finite float32 numbers)."""
     columns, _ = read_ply(path)
     kind = "full" if "f_dc_3" in columns or "f_t_0" in columns else "lite"
     require(columns, FULL if kind == "full" else LITE, path)
-    values = {name: columns[name].astype(np.float64) for name in (FULL if kind == "full" else LITE)}
-    bad = [name for name, v in values.items() if not np.all(np.isfinite(v))]
-    if bad:
-        raise PLYError(f"{os.fsdecode(path)}: non-finite values in {', '.join(bad)}")
-    return kind, values
+    return kind, float32_values(columns, FULL if kind == "full" else LITE, path)
 
 
 def load_decoder(path) -> list[np.ndarray]:

@@ -14,7 +14,7 @@ from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
-from stg_runtime.atomic import atomic_output, write_atomic
+from stg_runtime.atomic import atomic_output, remove_leftovers, write_atomic
 from stg_runtime.camera import Camera
 
 from .dataset import DataError, Dataset
@@ -54,10 +54,18 @@ def read_image(path: Path) -> np.ndarray:
 
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None:
+        _check_readable(path)
         raise DataError(f"{path}: cannot be read as an image")
     return img[..., ::-1]
 
 
+def _check_readable(path: Path) -> None:
+    """DataError saying why when `path` cannot be opened at all (OpenCV only says that it failed)."""
+    try:
+        with open(path, "rb"):
+            pass
+    except OSError as e:
+        raise DataError(f"{path}: cannot be read ({e.strerror or e})") from None
 
 
 def probe_video(path: Path) -> tuple[int, int, int, float]:
@@ -67,6 +75,7 @@ def probe_video(path: Path) -> tuple[int, int, int, float]:
     cap = cv2.VideoCapture(str(path))
     try:
         if not cap.isOpened():
+            _check_readable(path)
             raise DataError(f"{path}: cannot be opened as a video")
         count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
         width, height = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
@@ -149,6 +158,7 @@ def build_frame_cache(cache_dir, signature: dict, shape: tuple, fill: Callable[[
         cache_dir.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise DataError(f"{cache_dir}: cannot create the frame cache folder ({e})") from None
+    remove_leftovers(cache_dir, CACHE_NAME)  # of an interrupted build
     with atomic_output(path) as tmp:
         try:
             arr = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=tuple(shape))

@@ -45,8 +45,15 @@ def _load_poses(path: Path) -> np.ndarray:
     if not path.is_file():
         raise DataError(f"{path}: missing (the N3V layout needs poses_bounds.npy beside the videos)")
     try:
+        with open(path, "rb") as f:
+            magic = f.read(6)
+        if magic != b"\x93NUMPY":
+            raise DataError(f"{path}: cannot be read: not a numpy .npy file (it does not start with numpy's "
+                            "magic bytes)")
         poses = np.load(path, allow_pickle=False)
-    except Exception as e:  # noqa: BLE001 - any failure to parse is a data error
+    except OSError as e:
+        raise DataError(f"{path}: cannot be read ({e.strerror or e})") from None
+    except (ValueError, EOFError) as e:  # a damaged .npy: numpy's own message
         raise DataError(f"{path}: cannot be read as a numpy array ({e})") from None
     if poses.ndim != 2 or poses.shape[1] != 17 or not np.issubdtype(poses.dtype, np.number):
         raise DataError(f"{path}: has shape {poses.shape} (dtype {poses.dtype}), expected (num_cameras, 17)")
@@ -60,6 +67,9 @@ def _load_poses(path: Path) -> np.ndarray:
         if row[4] <= 0 or row[9] <= 0 or row[14] <= 0:
             raise DataError(f"{path}: row {i} has a non-positive image size or focal (H, W, focal = "
                             f"{row[4]:g}, {row[9]:g}, {row[14]:g})")
+        if not 0 < row[15] < row[16]:
+            raise DataError(f"{path}: row {i} has near/far depth bounds {row[15]:g}, {row[16]:g}; they must "
+                            "satisfy 0 < near < far")
     return poses
 
 

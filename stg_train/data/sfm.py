@@ -25,7 +25,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from stg_runtime.atomic import atomic_output
+from stg_runtime.atomic import atomic_output, remove_leftovers
 
 from .colmap import reconstruction_from_cameras, reconstruction_points
 from .dataset import DataError
@@ -191,6 +191,7 @@ def _save(path: Path, **arrays) -> None:
     """np.savez atomically (stg_runtime.atomic); a folder that cannot be written only warns."""
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
+        remove_leftovers(path.parent, path.name)
         with atomic_output(path) as tmp:
             np.savez(tmp, **arrays)
     except OSError as e:  # a read-only dataset folder: work without the cache

@@ -6,7 +6,7 @@ import os
 import numpy as np
 import pytest
 
-from stg_runtime.atomic import TEMPORARY_PATTERN, atomic_output, temporary_path, write_atomic
+from stg_runtime.atomic import TEMPORARY_PATTERN, atomic_output, remove_leftovers, temporary_path, write_atomic
 
 
 def test_write_atomic_replaces_the_file(tmp_path):
@@ -46,3 +46,34 @@ def test_libraries_that_take_a_path_write_through_it(tmp_path):
     with np.load(path) as z:
         np.testing.assert_array_equal(z["xyz"], np.arange(6.0))
     assert os.listdir(tmp_path) == ["points.npz"]
+
+
+def test_leftovers_of_interrupted_writes_are_removed(tmp_path):
+    keep = ["model.stg", ".hidden", "notes.tmp", ".model.stg.tmp"]
+    for name in keep:
+        (tmp_path / name).write_text("x")
+    stale = [temporary_path(tmp_path / "model.stg"), temporary_path(tmp_path / "checkpoint.pt"),
+             temporary_path(tmp_path / "frames_uint8.npy")]
+    for path in stale:
+        path.write_text("half")
+    assert remove_leftovers(tmp_path, "checkpoint.pt") == 1  # only that file's
+    assert not stale[1].exists() and stale[0].exists()
+    assert remove_leftovers(tmp_path) == 2
+    assert sorted(os.listdir(tmp_path)) == sorted(keep)
+    assert remove_leftovers(tmp_path / "missing") == 0
+
+
+def test_a_render_cleans_up_after_an_interrupted_one(tmp_path):
+    from stg_runtime.video import FrameWriter
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    temporary_path(frames / "frame_000003.png").write_bytes(b"half a png")
+    video_leftover = temporary_path(tmp_path / "orbit.mp4")
+    video_leftover.write_bytes(b"half a video")
+    other = temporary_path(tmp_path / "other.mp4")
+    other.write_bytes(b"another render's")
+    FrameWriter(frames, 30.0, 8, 8).close()
+    assert os.listdir(frames) == []
+    pytest.importorskip("cv2")
+    FrameWriter(tmp_path / "orbit.mp4", 30.0, 8, 8).close(ok=False)
+    assert not video_leftover.exists() and other.exists()  # only this video's leftovers

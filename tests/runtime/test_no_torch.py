@@ -26,3 +26,23 @@ def test_runtime_imports_and_renders_without_torch():
     out = subprocess.run([sys.executable, "-c", CODE], capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "ok"
+
+
+TELEMETRY = r"""
+import os, sys, warnings
+os.environ.pop("ORT_DISABLE_TELEMETRY", None)
+if sys.argv[1] == "after":
+    import onnxruntime  # noqa: F401
+with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    import stg_runtime  # noqa: F401
+print(os.environ.get("ORT_DISABLE_TELEMETRY"), len([w for w in caught if "ORT_DISABLE_TELEMETRY" in str(w.message)]))
+"""
+
+
+def test_importing_the_runtime_turns_onnxruntime_telemetry_off():
+    """onnxruntime reads ORT_DISABLE_TELEMETRY when it is first imported (docs/security.md)."""
+    first = subprocess.run([sys.executable, "-c", TELEMETRY, "first"], capture_output=True, text=True, timeout=300)
+    assert first.stdout.split() == ["1", "0"], first.stderr
+    after = subprocess.run([sys.executable, "-c", TELEMETRY, "after"], capture_output=True, text=True, timeout=300)
+    assert after.stdout.split() == ["1", "1"], after.stderr  # too late for onnxruntime: a warning says so

@@ -15,6 +15,7 @@ import pytest
 from stg_runtime import FormatError, Model, Player, Segment
 from stg_runtime import format as stg_format
 from stg_runtime.demo import demo_model
+from stg_runtime.onnx_mlp import mlp_to_onnx
 from stg_runtime.sh import sh_colours
 from stg_runtime.spec import evaluate_oracle, rasterize_oracle, sh_colours_oracle
 from stg_train.convert.gaussians3d import import_3dgs_ply
@@ -98,7 +99,10 @@ def test_reader_refuses_bad_sh_files(tmp_path):
             stg_format.load(tmp_path / "bad.stg")
         assert str(info.value).startswith(str(tmp_path / "bad.stg"))
     seg = demo_model("full", num_frames=2).segments[0]
+    decoder = mlp_to_onnx([np.ones((6, 15), np.float32), np.ones((3, 6), np.float32)])  # fits 12 features
     with pytest.raises(ValueError, match="has no decoder"):
-        Model("sh", 30.0, [Segment(0, 2, decoder=seg.decoder, **{**seg.arrays(), "features": np.zeros((seg.count, 12))})])
+        Model("sh", 30.0, [Segment(0, 2, decoder=decoder, **{**seg.arrays(), "features": np.zeros((seg.count, 12))})])
+    with pytest.raises(ValueError, match="must map 15 -> 3"):  # a decoder that does not fit the features
+        Segment(0, 2, decoder=seg.decoder, **{**seg.arrays(), "features": np.zeros((seg.count, 12))})
     with pytest.raises(ValueError, match="3 or 12 or 27 or 48"):
         Model("sh", 30.0, [Segment(0, 2, **{**seg.arrays(), "features": seg.features})])

@@ -3,8 +3,11 @@ import numpy as np
 import pytest
 
 from stg_runtime.model import Segment
+from stg_runtime.onnx_mlp import mlp_to_onnx
 from stg_runtime.spec import MIN_ALPHA, evaluate_oracle
 from stg_runtime.timeeval import evaluate
+
+DECODER = mlp_to_onnx([np.ones((6, 12), np.float32), np.ones((3, 6), np.float32)])
 
 
 def _segment(n=300, kind="full", p=3, q=1, seed=0):
@@ -13,7 +16,7 @@ def _segment(n=300, kind="full", p=3, q=1, seed=0):
     return Segment(0, 50, opacity=rng.uniform(0, 1, n), t_center=rng.uniform(0, 1, n), t_scale=rng.uniform(0, 30, n),
                    position=rng.standard_normal((n, p + 1, 3)), rotation=rng.standard_normal((n, q + 1, 4)),
                    scale=rng.uniform(0.01, 1, (n, 3)), features=rng.standard_normal((n, c)),
-                   decoder=b"" if kind == "full" else None)
+                   decoder=DECODER if kind == "full" else None)
 
 
 @pytest.mark.parametrize("kind,p,q", [("full", 3, 1), ("lite", 3, 1), ("full", 1, 0), ("lite", 5, 2)])
@@ -34,7 +37,7 @@ def test_hand_computed_values():
     rot = np.array([[[1, 0, 0, 0], [0, 0, 0, 2]]], float)
     feats = np.arange(1, 10, dtype=float)[None]
     seg = Segment(0, 10, opacity=[0.8], t_center=[0.25], t_scale=[4.0], position=pos, rotation=rot,
-                  scale=[[1, 2, 3]], features=feats, decoder=b"")
+                  scale=[[1, 2, 3]], features=feats, decoder=DECODER)
     g = evaluate(seg, 0.75)  # d = 0.5
     assert g.opacities[0] == pytest.approx(0.8 * np.exp(-4.0 * 0.25))
     np.testing.assert_allclose(g.means[0], [1.5, 2.25, 3.125], rtol=1e-6)

@@ -6,10 +6,13 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from stg_runtime.model import ATTRIBUTES, Segment  # noqa: E402
+from stg_runtime.onnx_mlp import mlp_to_onnx  # noqa: E402
 from stg_runtime.spec import evaluate_oracle  # noqa: E402
 from stg_train.params import gaussians_at as evaluate  # noqa: E402
 from stg_train.params import temporal_opacity  # noqa: E402
 from stg_train.raw import to_file_arrays  # noqa: E402
+
+DECODER = mlp_to_onnx([np.ones((6, 12), np.float32), np.ones((3, 6), np.float32)])
 
 
 def _raw(n=200, full=True, seed=0, requires_grad=False):
@@ -39,7 +42,7 @@ def test_matches_file_formula(full, tau):
     n = raw["xyz"].shape[0]
     assert arrays["position"].shape == (n, 4, 3) and arrays["rotation"].shape == (n, 2, 4)
     assert arrays["features"].shape == (n, 9 if full else 3)
-    seg = Segment(0, 50, decoder=b"" if full else None, **arrays)
+    seg = Segment(0, 50, decoder=DECODER if full else None, **arrays)
     for name, value in arrays.items():  # Segment stores float32; compare against the float64 values
         setattr(seg, name, value)
     ref = evaluate_oracle(seg, tau)
@@ -51,7 +54,7 @@ def test_matches_file_formula(full, tau):
 def test_file_arrays_default_to_float32():
     arrays = to_file_arrays({k: v.numpy() for k, v in _raw(n=5).items()})
     assert all(a.dtype == np.float32 for a in arrays.values())
-    Segment(0, 50, decoder=b"", **arrays)  # valid shapes
+    Segment(0, 50, decoder=DECODER, **arrays)  # valid shapes
 
 
 def test_only_temporal_opacity_reaches_t_center():

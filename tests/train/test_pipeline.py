@@ -8,7 +8,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from stg_runtime.atomic import TEMPORARY_PATTERN  # noqa: E402
+from stg_runtime.atomic import TEMPORARY_PATTERN, temporary_path  # noqa: E402
 from stg_runtime.player import Player  # noqa: E402
 from stg_train.cli.eval import main as eval_main  # noqa: E402
 from stg_train.cli.train import main as train_main  # noqa: E402
@@ -147,8 +147,12 @@ def test_cli_resume_continues(scene_dir, tmp_path):
     out = tmp_path / "run"
     args = [str(scene_dir), "--out", str(out), "--points", "300", "--quiet", "--checkpoint-every", "5"]
     assert train_main(args + ["--iterations", "5"]) == 0
+    killed = [temporary_path(out / name) for name in ("checkpoint.pt", "model.stg", "metrics.json")]
+    for path in killed:  # what a kill during those writes leaves behind
+        path.write_bytes(b"half")
     assert train_main(args + ["--iterations", "5", "--resume"]) == 0  # already done: exports again
     assert json.loads((out / "metrics.json").read_text())["iterations"] == 5
+    assert not any(path.exists() for path in killed)
 
 
 def _bad(tmp_path, scene_dir, what):

@@ -1,4 +1,5 @@
 """The Neural 3D Video reader (stg_train.data) on folders written by stg_train.synthetic.write_n3v."""
+import os
 import shutil
 
 import cv2
@@ -157,6 +158,13 @@ def test_bad_poses_bounds(n3v, tmp_path):
     bad[1, 0] = np.nan
     np.save(path / "poses_bounds.npy", bad)
     _expect(path, "non-finite", "poses_bounds.npy")
+    for near, far in ((-1.0, 5.0), (5.0, 2.0), (0.0, 1.0)):
+        bad = good.copy()
+        bad[2, 15:17] = near, far
+        np.save(path / "poses_bounds.npy", bad)
+        _expect(path, "row 2 has near/far depth bounds", "poses_bounds.npy")
+    (path / "poses_bounds.npy").write_text("1 2 3\n")
+    _expect(path, "not a numpy .npy file", "poses_bounds.npy")
 
 
 def test_bad_videos(n3v, tmp_path):
@@ -184,5 +192,14 @@ def test_bad_png_layout(n3v, tmp_path):
     _expect(path, "different frame counts", "cam01: 4 frames", prefer_png=True, cache_dir=tmp_path / "c")
     (path / "frames" / "cam01" / "000004.png").write_bytes(b"not a png")
     _expect(path, "cannot be read as an image", "000004.png", prefer_png=True, cache_dir=tmp_path / "c")
+    frame = path / "frames" / "cam01" / "000004.png"
+    if os.geteuid() != 0:  # (root reads any file)
+        frame.chmod(0)
+        _expect(path, "cannot be read (Permission denied)", "000004.png", prefer_png=True, cache_dir=tmp_path / "c")
+    frame.unlink()
+    frame.mkdir()  # a frame that cannot be opened at all: the reason is in the message
+    _expect(path, "cannot be read (Is a directory)", "000004.png", prefer_png=True, cache_dir=tmp_path / "c")
+    frame.rmdir()
+    frame.write_bytes(b"not a png")
     # without prefer_png the videos are read and the broken PNGs do not matter
     assert load_n3v(path, cache_dir=tmp_path / "c").num_frames == FRAMES
