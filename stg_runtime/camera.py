@@ -54,12 +54,23 @@ class Camera:
 
     # -- constructors -------------------------------------------------------------------------
     @classmethod
-    def from_opencv(cls, K, world_to_camera, width: int, height: int, name: str = "") -> "Camera":
-        """From a 3x3 intrinsic matrix K and a 4x4 (or 3x4) world-to-camera matrix."""
+    def from_colmap(cls, K, world_to_camera, width: int, height: int, name: str = "") -> "Camera":
+        """From a 3x3 intrinsic matrix K in this project's (and COLMAP's, and gsplat's) convention, the
+        centre of pixel (column u, row v) at (u + 0.5, v + 0.5), and a 4x4 (or 3x4) world-to-camera
+        matrix (OpenCV axes). K's numbers are kept as they are."""
         K = np.asarray(K, dtype=np.float64)
         w2c = np.eye(4)
         w2c[: np.shape(world_to_camera)[0]] = np.asarray(world_to_camera, dtype=np.float64)
         return cls(K[0, 0], K[1, 1], K[0, 2], K[1, 2], width, height, w2c, name)
+
+    @classmethod
+    def from_opencv(cls, K, world_to_camera, width: int, height: int, name: str = "") -> "Camera":
+        """From an OpenCV calibration (calibrateCamera, solvePnP): a 3x3 intrinsic matrix K whose pixel
+        centres are at integers, converted to this project's convention (cx + 0.5, cy + 0.5), and a 4x4
+        (or 3x4) world-to-camera matrix (x right, y down, z forward)."""
+        camera = cls.from_colmap(K, world_to_camera, width, height, name)
+        return cls(camera.fx, camera.fy, camera.cx + 0.5, camera.cy + 0.5, width, height,
+                   camera.world_to_camera, name)
 
     @classmethod
     def look_at(cls, eye, target, up, fov_deg: float, width: int, height: int, name: str = "") -> "Camera":

@@ -29,7 +29,7 @@ from stg_runtime.progress import progress_callback
 from .convert.merge import merge_files
 from .data import DataError, load_dataset
 from .export import export_trainer
-from .metrics import evaluate_player, heldout
+from .metrics import evaluate_player, heldout, lpips_models
 from .segments import (SegmentError, check_plan, finished, missing_message, plan_segments, pooled, segment_dir,
                        worst_check)
 from .synthetic import SyntheticScene, write_n3v
@@ -68,18 +68,28 @@ def new_trainer(dataset, config: TrainConfig, out: Path, quiet: bool = False) ->
     return trainer
 
 
+def _lpips(quiet: bool) -> dict:
+    """lpips_models(), saying on stderr why LPIPS is left out when it is (unless quiet)."""
+    models, why = lpips_models()
+    if why and not quiet:
+        print(f"stg-train: {why}", file=sys.stderr)
+    return models
+
+
 def _write_metrics(out: Path, metrics: dict) -> None:
     write_atomic(out / "metrics.json", json.dumps(metrics, indent=1) + "\n")
 
 
 def train(dataset, out, config: TrainConfig, resume: bool = False, quiet: bool = False, check: bool = True,
-          segment_frames: int | None = None, segments: Sequence[int] | None = None) -> dict:
+          segment_frames: int | None = None, segments: Sequence[int] | None = None, lpips: dict | None = None) -> dict:
     """Train (or resume) into `out`, export out/model.stg, evaluate it with the runtime and write
     out/metrics.json; returns the metrics. With segment_frames, a video of more frames (or any run
-    naming `segments`, a list of indices) is trained segment by segment (train_segments).
+    naming `segments`, a list of indices) is trained segment by segment (train_segments). lpips: the
+    LPIPS networks of the evaluation (default: metrics.lpips_models, when the lpips package works).
     Raises DataError and SegmentError naming the problem."""
     if segment_frames and (segments is not None or len(plan_segments(dataset.num_frames, segment_frames)) > 1):
         return train_segments(dataset, out, config, segment_frames, segments, resume, quiet, check)
+    lpips = _lpips(quiet) if lpips is None else lpips
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     remove_leftovers(out)  # of a killed run: its checkpoint, model or metrics being written
@@ -94,7 +104,7 @@ def train(dataset, out, config: TrainConfig, resume: bool = False, quiet: bool =
         trainer = new_trainer(dataset, config, out, quiet)
     trainer.train(progress=not quiet)
     report = export_trainer(trainer, out / "model.stg", check=check)
-    result = evaluate_player(Player(report.path, device="cpu"), dataset)
+    result = evaluate_player(Player(report.path, device="cpu"), dataset, lpips=lpips)
     metrics = {"heldout": heldout(result), "iterations": trainer.step, "train_seconds": trainer.seconds,
                "gaussians": trainer.params.count, "file_bytes": report.bytes,
                "export_check": None if report.diff is None else report.diff._asdict(),
@@ -122,6 +132,7 @@ def train_segments(dataset, out, config: TrainConfig, segment_frames: int, indic
                            f"{len(plan)} segment{'s' if len(plan) > 1 else ''} of {segment_frames} frames "
                            f"(indices 0-{len(plan) - 1})")
     check_plan(out, plan, segment_frames)
+    lpips = _lpips(quiet)
     remove_leftovers(out)
     remove_leftovers(out / "segments")
     folders = [segment_dir(out, s.index, len(plan)) for s in plan]
@@ -136,7 +147,7 @@ def train_segments(dataset, out, config: TrainConfig, segment_frames: int, indic
                 (folder / name).unlink(missing_ok=True)
         if not quiet:
             print(f"segment {i} of 0-{len(plan) - 1} ({span.frames()}) -> {folder}", file=sys.stderr)
-        train(dataset.frame_range(span.start, span.count), folder, config, resume, quiet, check)
+        train(dataset.frame_range(span.start, span.count), folder, config, resume, quiet, check, lpips=lpips)
 
     done = [s for s, f in zip(plan, folders) if finished(f, s)]
     missing = [s for s in plan if s not in done]
@@ -157,7 +168,7 @@ def train_segments(dataset, out, config: TrainConfig, segment_frames: int, indic
                         provenance={"tool": "stg-train", "segment_frames": segment_frames})
         except ValueError as e:
             raise SegmentError(f"cannot merge the segments of {out / 'segments'}: {e}") from None
-        result = evaluate_player(Player(model_path, device="cpu"), dataset)
+        result = evaluate_player(Player(model_path, device="cpu"), dataset, lpips=lpips)
         file_bytes = model_path.stat().st_size
     else:  # the finished segments' own evaluations (of the same files, over their frames), pooled
         result = pooled(heldouts)

@@ -24,6 +24,8 @@ from typing import NamedTuple, Sequence
 from stg_runtime import format as stg_format
 from stg_runtime.atomic import write_atomic
 
+from .metrics import LPIPS_KEYS
+
 PLAN_NAME = "plan.json"
 
 
@@ -108,9 +110,11 @@ def finished(folder: Path, span: Span) -> bool:
 
 
 def pooled(results: Sequence[dict]) -> dict:
-    """One evaluate_player-style summary of several (means weighted by their image counts)."""
+    """One evaluate_player-style summary of several (means weighted by their image counts; LPIPS where
+    every one has it)."""
     images = sum(r["images"] for r in results)
-    out = {k: float(sum(r[k] * r["images"] for r in results) / images) for k in ("psnr", "ssim", "dssim1", "dssim2")}
+    keys = ["psnr", "ssim", "dssim1", "dssim2"] + [k for k in LPIPS_KEYS if all(k in r for r in results)]
+    out = {k: float(sum(r[k] * r["images"] for r in results) / images) for k in keys}
     seconds = sum(r["images"] / r["fps"] for r in results if r["fps"] > 0)
     cameras = sorted({c for r in results for c in r["cameras"]})
     return {**out, "fps": images / seconds if seconds > 0 else float("inf"), "images": images, "cameras": cameras}

@@ -51,10 +51,14 @@ def dataset_options(args) -> dict:
 
 
 def format_table(figures: dict, file_bytes: int, gaussians: int | None = None) -> str:
-    """The held-out figures (stg_train.metrics.HELDOUT_KEYS), size and Gaussian count, one per line."""
+    """The held-out figures (stg_train.metrics.HELDOUT_KEYS, LPIPS where computed), size and Gaussian
+    count, one per line."""
     rows = [("PSNR (dB)", f"{figures['psnr']:.2f}"), ("SSIM", f"{figures['ssim']:.4f}"),
             ("DSSIM1", f"{figures['dssim1']:.4f}"), ("DSSIM2", f"{figures['dssim2']:.4f}"),
             ("render FPS", f"{figures['fps']:.1f}"), ("model size (MB)", f"{file_bytes / 1e6:.2f}")]
+    for key, label in (("lpips_alex", "LPIPS (AlexNet)"), ("lpips_vgg", "LPIPS (VGG)")):
+        if key in figures:
+            rows.append((label, f"{figures[key]:.4f}"))
     if gaussians is not None:
         rows.append(("Gaussians", str(gaussians)))
     rows.append(("images", f"{figures['images']} ({', '.join(figures['cameras'])})"))

@@ -78,14 +78,21 @@ def _fraction(text: str) -> float:
     return value
 
 
-def _frames(text: str) -> list[int]:
-    try:
-        values = [int(v) for v in text.split(",")]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a frame count or a comma-separated list, got {text!r}") from None
-    if min(values) <= 0:
-        raise argparse.ArgumentTypeError(f"frame counts must be positive, got {text!r}")
-    return values
+def _positive_list(kind, what: str):
+    """An argument type: one positive `kind` (`what`, plural) or a comma-separated list of them."""
+    def parse(text: str) -> list:
+        try:
+            values = [kind(v) for v in text.split(",")]
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {what}, one or a comma-separated list, got {text!r}") from None
+        if min(values) <= 0:
+            raise argparse.ArgumentTypeError(f"{what} must be positive, got {text!r}")
+        return values
+    return parse
+
+
+_frames = _positive_list(int, "frame counts")
+_durations = _positive_list(float, "durations")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -122,8 +129,9 @@ def build_parser() -> argparse.ArgumentParser:
                        help="import models of the paper's reference implementation (PLY + decoder)",
                        description="Convert the reference implementation's trained models (one PLY per "
                                    "segment, in time order, and for full models the decoder state dict "
-                                   "of each) into one .stg file. The reference's time t = frame / 50 is "
-                                   "mapped to ours (frame / segment frames).")
+                                   "of each) into one .stg file. The reference's time t = frame / duration "
+                                   "(its training setting, 50 by default) is mapped to ours (frame / "
+                                   "segment frames).")
     r.add_argument("inputs", nargs="+", metavar="PLY", help="the segments' PLYs, in time order")
     r.add_argument("output", metavar="OUT.stg")
     r.add_argument("--decoder", nargs="+", default=None, metavar="PT",
@@ -134,6 +142,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="video frame of the first segment's first frame (default 0)")
     r.add_argument("--segment-frames", type=_frames, default=[50], metavar="F[,F...]",
                    help="frames per segment: one count for all, or one per PLY (e.g. 50,50,20; default 50)")
+    r.add_argument("--duration", type=_durations, default=[50.0], metavar="D[,D...]",
+                   help="the reference's `duration` each PLY was trained with (frame j at t = j / D): one for "
+                        "all, or one per PLY (default 50, the official default; a short last segment trained "
+                        "with its own length, e.g. 50,50,20)")
     r.add_argument("--activation", choices=list(ACTIVATIONS), default="sigmoid",
                    help="decoder output activation: sigmoid (N3V), clamp (Technicolor), identity (Google "
                         "Immersive); default %(default)s")
@@ -207,8 +219,9 @@ def _compress(args, parser) -> int:
 def _import_reference(args, parser) -> int:
     plys, out = args.inputs, _writable(args.output)
     frames = args.segment_frames[0] if len(args.segment_frames) == 1 else args.segment_frames
+    durations = args.duration[0] if len(args.duration) == 1 else args.duration
     model = import_reference(plys, args.decoder, fps=args.fps, start_frame=args.start_frame,
-                             segment_frames=frames, activation=args.activation)
+                             segment_frames=frames, activation=args.activation, duration=durations)
     stg_format.save(model, out)
     count = sum(s.count for s in model.segments)
     print(f"wrote {out}: {model.kind} model, {len(model.segments)} segment(s), {model.num_frames} frames at "

@@ -11,7 +11,7 @@ from stg_runtime.format import FormatError
 from stg_runtime.player import Player, RenderError
 
 from ..data import DataError, load_dataset
-from ..metrics import evaluate_player, heldout
+from ..metrics import evaluate_player, heldout, lpips_models
 from ..pipeline import model_frames
 from .common import add_dataset_options, dataset_options, error, format_table
 
@@ -19,7 +19,9 @@ PROG = "stg-eval"
 
 EPILOG = """Renders the held-out camera(s) of DATA (cam00 for N3V; --test-camera to choose) at every frame through the runtime player
 and compares with the ground truth: PSNR (dB), SSIM (scikit-image, data_range 1), DSSIM1 = (1 - SSIM)/2
-with data_range 1 and DSSIM2 with data_range 2 (the paper's Sec. 6.1), render FPS, model size."""
+with data_range 1 and DSSIM2 with data_range 2 (the paper's Sec. 6.1), LPIPS with AlexNet and VGG (the
+optional lpips package: python -m pip install -e ".[lpips]"; its backbones download on first use; a
+line on stderr says why when it is left out), render FPS, model size."""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -29,6 +31,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("data", metavar="DATA", help="the dataset folder it was trained on (any layout of stg-train)")
     p.add_argument("--json", metavar="PATH", help="also write the figures (and per-frame values) as JSON")
     add_dataset_options(p)
+    p.add_argument("--no-lpips", action="store_true",
+                   help="skip LPIPS (computed with AlexNet and VGG when the optional lpips package works)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     return p
 
@@ -48,8 +52,11 @@ def main(argv=None) -> int:
     if len(frames) < dataset.num_frames:  # a model of some segments only (stg-train --segments)
         print(f"{PROG}: {args.model} covers frames {frames.start}-{frames.stop - 1} of the dataset's "
               f"{dataset.num_frames}: evaluating those", file=sys.stderr)
+    lpips, why = ({}, None) if args.no_lpips else lpips_models()
+    if why:
+        print(f"{PROG}: {why}", file=sys.stderr)
     try:
-        result = evaluate_player(player, dataset, frames=frames)
+        result = evaluate_player(player, dataset, frames=frames, lpips=lpips)
     except RenderError as e:
         return error(PROG, str(e))
     size = Path(args.model).stat().st_size

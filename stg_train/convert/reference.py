@@ -12,11 +12,12 @@ plus, for full models, the decoder's torch state dict (`mlp1.weight` [6, 12, 1, 
     position(t) = xyz + motion[0:3] dt + motion[3:6] dt^2 + motion[6:9] dt^3
     rotation(t) = normalise(rot + dt omega);  scale = exp(scale);  features(t) = [f_dc, dt f_t]
 
-The reference's time of frame j of a segment is t = j / 50; ours is tau = j / num_frames. With
-k = num_frames / 50, t = k tau, so t_center = trbf_center / k, dt = k d (d = tau - t_center), and the
-file's coefficients absorb the powers of k: t_scale = k^2 exp(-2 trbf_scale), position
-[xyz, k m0:3, k^2 m3:6, k^3 m6:9], rotation [rot, k omega], time features k f_t. For 50-frame
-segments nothing is rescaled.
+The reference's time of frame j of a segment is t = j / duration, `duration` a training setting (50 in
+every published configuration; a shorter last segment may be trained with its own length, e.g. 20);
+ours is tau = j / num_frames. With k = num_frames / duration, t = k tau, so t_center = trbf_center / k,
+dt = k d (d = tau - t_center), and the file's coefficients absorb the powers of k: t_scale =
+k^2 exp(-2 trbf_scale), position [xyz, k m0:3, k^2 m3:6, k^3 m6:9], rotation [rot, k omega], time
+features k f_t (stg_train.raw.to_file_arrays). When num_frames equals duration nothing is rescaled.
 """
 from __future__ import annotations
 
@@ -30,7 +31,7 @@ from stg_runtime.onnx_mlp import mlp_to_onnx
 from ..raw import to_file_arrays
 from .ply import float32_values, read_ply, require
 
-#: The reference's time normaliser: frame j of a segment is at t = j / REFERENCE_FRAMES.
+#: The reference's default duration: frame j of a segment is at t = j / REFERENCE_FRAMES.
 REFERENCE_FRAMES = 50
 COMMON = (["x", "y", "z", "trbf_center", "trbf_scale"] + [f"motion_{i}" for i in range(9)] + ["opacity"]
           + [f"scale_{i}" for i in range(3)] + [f"rot_{i}" for i in range(4)] + [f"omega_{i}" for i in range(4)])
@@ -90,10 +91,11 @@ def load_decoder(path) -> list[np.ndarray]:
 
 
 def reference_segment(kind: str, values: dict[str, np.ndarray], start_frame: int, num_frames: int,
-                      decoder: bytes | None = None, activation: str = "sigmoid") -> Segment:
+                      decoder: bytes | None = None, activation: str = "sigmoid",
+                      duration: float = REFERENCE_FRAMES) -> Segment:
     """A runtime Segment of `num_frames` frames from a reference PLY's raw properties (read_reference_ply),
-    rescaling time from t = j / 50 to tau = j / num_frames (see the module docstring). The reference's
-    raw parameters are ours (stg_train.raw), so stg_train.raw.to_file_arrays converts them."""
+    rescaling time from t = j / duration to tau = j / num_frames (see the module docstring). The
+    reference's raw parameters are ours (stg_train.raw), so stg_train.raw.to_file_arrays converts them."""
     v = values
     cols = lambda prefix, count: np.stack([v[f"{prefix}_{i}"] for i in range(count)], 1)  # noqa: E731
     raw = {"xyz": np.stack([v["x"], v["y"], v["z"]], 1), "motion": cols("motion", 9), "rotation": cols("rot", 4),
@@ -103,39 +105,45 @@ def reference_segment(kind: str, values: dict[str, np.ndarray], start_frame: int
     if kind == "full":
         raw["time_features"] = cols("f_t", 3)
     try:
-        arrays = to_file_arrays(raw, time_scale=num_frames / REFERENCE_FRAMES)
+        arrays = to_file_arrays(raw, time_scale=num_frames / duration)
     except ValueError:
         raise ValueError("trbf_scale or scale_* too large or small to exponentiate") from None
     return Segment(start_frame, num_frames, decoder=decoder, activation=activation, **arrays)
 
 
+def _per_ply(name: str, value, count: int, kind) -> list:
+    """`value` (one positive number, or one per PLY) as a list of `count` numbers of `kind`."""
+    values = [kind(value)] * count if np.ndim(value) == 0 else [kind(v) for v in value]
+    if len(values) != count or not all(v > 0 for v in values):
+        raise ValueError(f"{name}: need one positive number, or one per PLY ({count}), got {value}")
+    return values
+
+
 def import_reference(ply_paths, decoder_paths=None, fps: float = 30.0, start_frame: int = 0,
-                     segment_frames=REFERENCE_FRAMES, activation: str = "sigmoid", cameras=()) -> Model:
+                     segment_frames=REFERENCE_FRAMES, activation: str = "sigmoid", cameras=(),
+                     duration=REFERENCE_FRAMES) -> Model:
     """A runtime Model from reference PLYs, one per consecutive segment in time order (with their
     decoder state dicts, one per PLY, for full models).
 
     fps: frames per second of the video; start_frame: the first segment's first frame;
     segment_frames: frames per segment, one int for all or one per PLY (the last segment of a video
-    is often shorter); activation: the decoder output's activation ("sigmoid" for N3V, "clamp" for
-    Technicolor, "identity" for Google Immersive). Raises PLYError / ReferenceModelError naming the
-    file, ValueError for inconsistent arguments."""
+    is often shorter); duration: the reference's `duration` setting each PLY was trained with (frame j
+    at t = j / duration), one number for all or one per PLY, default 50 (the official default; a short
+    last segment trained with its own length has duration = its frames); activation: the decoder
+    output's activation ("sigmoid" for N3V, "clamp" for Technicolor, "identity" for Google Immersive).
+    Raises PLYError / ReferenceModelError naming the file, ValueError for inconsistent arguments."""
     ply_paths = [os.fspath(p) for p in ([ply_paths] if isinstance(ply_paths, (str, os.PathLike)) else ply_paths)]
     if not ply_paths:
         raise ValueError("no PLY file given")
     if activation not in ACTIVATIONS:
         raise ValueError(f"activation must be one of {', '.join(ACTIVATIONS)}, got {activation!r}")
-    if np.ndim(segment_frames) == 0:
-        frames = [int(segment_frames)] * len(ply_paths)
-    else:
-        frames = [int(f) for f in segment_frames]
-    if len(frames) != len(ply_paths) or min(frames) <= 0:
-        raise ValueError(f"segment_frames: need one positive frame count, or one per PLY ({len(ply_paths)}), "
-                         f"got {segment_frames}")
+    frames = _per_ply("segment_frames", segment_frames, len(ply_paths), int)
+    durations = _per_ply("duration", duration, len(ply_paths), float)
     if int(start_frame) < 0:
         raise ValueError(f"start_frame must be >= 0, got {start_frame}")
     decoder_paths = [] if decoder_paths is None else [os.fspath(p) for p in decoder_paths]
     segments, kinds, start = [], [], int(start_frame)
-    for i, (path, count) in enumerate(zip(ply_paths, frames)):
+    for i, (path, count, length) in enumerate(zip(ply_paths, frames, durations)):
         kind, values = read_reference_ply(path)
         kinds.append(kind)
         decoder = None
@@ -147,7 +155,7 @@ def import_reference(ply_paths, decoder_paths=None, fps: float = 30.0, start_fra
         elif decoder_paths:
             raise ValueError(f"{path}: a lite reference model has no decoder, but decoders were given")
         try:
-            segments.append(reference_segment(kind, values, start, count, decoder, activation))
+            segments.append(reference_segment(kind, values, start, count, decoder, activation, length))
         except ValueError as e:
             raise ReferenceModelError(f"{path}: {e}") from None
         start += count
@@ -158,5 +166,5 @@ def import_reference(ply_paths, decoder_paths=None, fps: float = 30.0, start_fra
     bounds = (tuple(xyz.min(0).tolist()), tuple(xyz.max(0).tolist())) if xyz.size else None
     provenance = {"tool": "stg-convert import-reference", "sources": [os.path.basename(p) for p in ply_paths],
                   "settings": {"fps": fps, "start_frame": int(start_frame), "segment_frames": frames,
-                               "activation": activation}}
+                               "duration": durations, "activation": activation}}
     return Model(kinds[0], fps, segments, list(cameras), bounds, provenance)

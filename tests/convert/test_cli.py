@@ -98,6 +98,17 @@ def test_import_reference_and_3dgs_and_export(tmp_path, capsys):
     assert rc == 0, err
     m = stg_format.load(tmp_path / "ref.stg")
     assert m.kind == "lite" and m.fps == 25 and [(s.start_frame, s.num_frames) for s in m.segments] == [(100, 50), (150, 20)]
+    assert m.provenance["settings"]["duration"] == [50.0, 50.0]  # the official default
+    rc, out, err = run(["import-reference", *plys, tmp_path / "own.stg", "--segment-frames", "50,20",
+                        "--duration", "50,20"], capsys)
+    assert rc == 0, err
+    own = stg_format.load(tmp_path / "own.stg")
+    assert own.provenance["settings"]["duration"] == [50.0, 20.0]
+    assert np.array_equal(own.segments[0].position, m.segments[0].position)  # 50 frames at duration 50: the same
+    assert not np.array_equal(own.segments[1].t_center, m.segments[1].t_center)  # rescaled by 20/50 or not
+    with pytest.raises(SystemExit) as exit_code:
+        run(["import-reference", *plys, tmp_path / "bad.stg", "--duration", "0"], capsys)
+    assert exit_code.value.code == 2 and "durations must be positive" in capsys.readouterr().err
 
     rc, out, err = run(["import-3dgs", gs_ply(tmp_path / "gs.ply"), tmp_path / "gs.stg", "--fps", "24"], capsys)
     assert rc == 0, err

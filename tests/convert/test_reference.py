@@ -33,7 +33,7 @@ def reference_properties(n: int, kind: str, seed: int) -> dict:
 
 
 def reference_render(p: dict, weights, t: float, kind: str) -> np.ndarray:
-    """The reference's formulas in float64 at its time t (= j / 50), then the spec's splatter."""
+    """The reference's formulas in float64 at its time t (= j / duration), then the spec's splatter."""
     f = {k: v.astype(np.float64) for k, v in p.items()}
     col = lambda name, c: np.stack([f[f"{name}_{i}"] for i in range(c)], 1)  # noqa: E731
     dt = (t - f["trbf_center"])[:, None]
@@ -83,6 +83,41 @@ def test_full_two_segments_render_like_the_reference(tmp_path):
             ref = reference_render(props[seg], weights[seg], j / 50.0, "full")
             worst = max(worst, float(np.abs(ours - ref).max()))
     assert worst < 1e-4, worst  # float32 rendering against float64
+
+
+@pytest.mark.parametrize("frames, duration", [(50, 50), (20, 50), (20, 20), (60, 50), (60, 60)])
+def test_segments_trained_with_any_duration(tmp_path, frames, duration):
+    """The official code maps frame j of a segment to t = j / duration (50 by default; a short last segment
+    may be trained with its own length): the import matches its renders at every kind of frame."""
+    p = reference_properties(120, "full", frames + duration)
+    p["trbf_center"] = np.random.default_rng(3).uniform(0, (frames - 1) / duration, 120).astype(np.float32)
+    write_ply(tmp_path / "seg.ply", p)
+    weights = save_decoder(tmp_path / "seg.pth", 4)
+    model = import_reference([tmp_path / "seg.ply"], [tmp_path / "seg.pth"], fps=FPS, segment_frames=frames,
+                             duration=duration)
+    assert model.provenance["settings"]["duration"] == [float(duration)]
+    player = Player(model, device="cpu")
+    for j in (0, frames // 3, frames - 1):
+        diff = np.abs(player.render(CAMERA, j / FPS) - reference_render(p, weights, j / duration, "full"))
+        assert diff.max() < 1e-4, (j, diff.max())
+    if frames != duration:  # reading the segment with the wrong duration renders something else
+        wrong = Player(import_reference([tmp_path / "seg.ply"], [tmp_path / "seg.pth"], fps=FPS,
+                                        segment_frames=frames, duration=frames), device="cpu")
+        j = frames - 1
+        assert np.abs(wrong.render(CAMERA, j / FPS) - reference_render(p, weights, j / duration, "full")).max() > 0.05
+
+
+def test_durations_per_ply_and_bad_values(tmp_path):
+    for i in range(2):
+        write_ply(tmp_path / f"{i}.ply", reference_properties(20, "lite", i))
+    plys = [tmp_path / "0.ply", tmp_path / "1.ply"]
+    model = import_reference(plys, fps=FPS, segment_frames=[50, 20], duration=[50, 20])
+    assert [s.num_frames for s in model.segments] == [50, 20]
+    assert model.provenance["settings"]["duration"] == [50.0, 20.0]
+    with pytest.raises(ValueError, match="duration: need one positive number, or one per PLY"):
+        import_reference(plys, segment_frames=[50, 20], duration=[50, 20, 10])
+    with pytest.raises(ValueError, match="duration"):
+        import_reference(plys, duration=0)
 
 
 def test_lite_segment_of_30_frames(tmp_path):

@@ -23,11 +23,20 @@ def test_vertical_fov():
     assert cam.fy == pytest.approx(25.0)
 
 
-def test_from_opencv_and_dict_round_trip():
+def test_constructors_say_their_pixel_convention_and_dict_round_trip():
     K = np.array([[500, 0, 320], [0, 510, 240], [0, 0, 1.0]])
     Rt = np.hstack([np.eye(3), [[0.1], [0.2], [0.3]]])
-    cam = Camera.from_opencv(K, Rt, 640, 480, name="a")
-    assert (cam.fx, cam.fy, cam.cx, cam.cy) == (500, 510, 320, 240)
+    native = Camera.from_colmap(K, Rt, 640, 480, name="a")
+    assert (native.fx, native.fy, native.cx, native.cy) == (500, 510, 320, 240)
+    cam = Camera.from_opencv(K, Rt, 640, 480, name="a")  # OpenCV: pixel centres at integers
+    assert (cam.fx, cam.fy, cam.cx, cam.cy) == (500, 510, 320.5, 240.5)
+    np.testing.assert_array_equal(cam.world_to_camera, native.world_to_camera)
+    # OpenCV's projection of a point, in its own convention, lands on the same pixel as ours
+    import cv2
+    point = np.array([[0.4, -0.3, 2.0]])
+    uv_cv, _ = cv2.projectPoints(point, np.zeros(3), np.array([0.1, 0.2, 0.3]), K, np.zeros(5))
+    uv, _ = cam.project(point)
+    np.testing.assert_allclose(uv[0], uv_cv[0, 0] + 0.5, atol=1e-9)  # OpenCV's pixel u covers [u-0.5, u+0.5)
     again = Camera.from_dict(cam.to_dict())
     assert again == cam and again != cam.resized(320, 240)
     np.testing.assert_array_equal(again.K, cam.K)

@@ -41,7 +41,7 @@ def _stand_in(calls: list):
         assert viewmats.shape == (1, 4, 4) and Ks.shape == (1, 3, 3)
         assert (near_plane, eps2d, packed, render_mode, rasterize_mode) == (0.01, 0.3, False, "RGB+ED", "classic")
         calls.append(1)
-        cam = Camera.from_opencv(Ks[0].numpy(), viewmats[0].numpy(), width, height)
+        cam = Camera.from_colmap(Ks[0].numpy(), viewmats[0].numpy(), width, height)
         out = rasterize(means, quats, scales, opacities, colors, cam)
         render = torch.cat([out.features, out.depth[..., None]], -1)[None]  # (1, H, W, D + 1)
         radii = out.radii[None, :, None].expand(1, n, 2).to(torch.int32)  # gsplat >= 1.5: per axis

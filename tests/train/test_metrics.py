@@ -1,0 +1,98 @@
+"""stg_train.metrics: PSNR / SSIM / DSSIM and the optional LPIPS. The lpips package is not installed
+here (its torchvision does not import beside the CPU torch build), so LPIPS's code path is tested with a
+stand-in package whose networks are known functions: what they receive (range, layout) and how the
+figures are averaged."""
+from __future__ import annotations
+
+import sys
+import types
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from stg_train import metrics  # noqa: E402
+
+
+class _Net(torch.nn.Module):
+    """A stand-in LPIPS network: mean |a - b| times a per-network factor; remembers its inputs."""
+
+    def __init__(self, net, version, verbose):
+        super().__init__()
+        self.factor = {"alex": 1.0, "vgg": 10.0}[net]
+        self.seen = []
+
+    def forward(self, a, b):
+        self.seen.append((a.clone(), b.clone()))
+        return self.factor * (a - b).abs().mean(dim=(1, 2, 3), keepdim=True)
+
+
+def _fake_lpips(monkeypatch, fail=None):
+    module = types.ModuleType("lpips")
+
+    def make(net, version, verbose):
+        if fail:
+            raise fail
+        return _Net(net, version, verbose)
+    module.LPIPS = make
+    monkeypatch.setitem(sys.modules, "lpips", module)
+
+
+def test_lpips_inputs_range_layout_and_averaging(monkeypatch):
+    _fake_lpips(monkeypatch)
+    models, why = metrics.lpips_models()
+    assert why is None and set(models) == {"alex", "vgg"}
+    rng = np.random.default_rng(0)
+    a, b = rng.uniform(0, 1, (12, 16, 3)), rng.uniform(0, 1, (12, 16, 3))
+    figures = metrics.image_metrics(a, b, lpips=models)
+    (x, y), = models["alex"].seen
+    assert x.shape == (1, 3, 12, 16) and x.dtype == torch.float32
+    assert x.min() >= -1 and x.max() <= 1 and x.min() < -0.9 and x.max() > 0.9  # [0, 1] -> [-1, 1]
+    np.testing.assert_allclose(x[0].permute(1, 2, 0).numpy(), 2 * a - 1, atol=1e-6)
+    np.testing.assert_allclose(figures["lpips_alex"], 2 * np.abs(a - b).mean(), rtol=1e-5)
+    np.testing.assert_allclose(figures["lpips_vgg"], 20 * np.abs(a - b).mean(), rtol=1e-5)
+    assert {"psnr", "ssim", "dssim1", "dssim2"} <= set(figures)
+
+
+def test_lpips_missing_says_why(monkeypatch):
+    monkeypatch.setitem(sys.modules, "lpips", None)  # not installed
+    models, why = metrics.lpips_models()
+    assert models == {} and why.startswith("LPIPS not computed: the lpips package cannot be imported")
+    _fake_lpips(monkeypatch, fail=OSError("urlopen error [Errno -3] Temporary failure in name resolution"))
+    models, why = metrics.lpips_models()
+    assert models == {} and "alex network cannot be loaded" in why and "name resolution" in why
+
+
+def test_evaluation_means_and_held_out_keys(monkeypatch):
+    _fake_lpips(monkeypatch)
+    models, _ = metrics.lpips_models()
+
+    class Player:
+        start_time = 0.0
+
+        def render(self, camera, t):
+            return np.full((8, 8, 3), 0.5 + 0.1 * t, np.float32)
+
+    class Dataset:
+        test_cameras, num_frames, fps = [0], 3, 1.0
+        cameras = [types.SimpleNamespace(name="cam00")]
+
+        def image(self, ci, j):
+            return np.full((8, 8, 3), 0.5, np.float32)
+
+    result = metrics.evaluate_player(Player(), Dataset(), lpips=models)
+    np.testing.assert_allclose([r["lpips_alex"] for r in result["per_frame"]], [0.0, 0.2, 0.4], atol=1e-6)
+    assert result["lpips_alex"] == pytest.approx(0.2, abs=1e-6) and result["lpips_vgg"] == pytest.approx(2.0, abs=1e-5)
+    assert set(metrics.heldout(result)) == set(metrics.HELDOUT_KEYS + metrics.LPIPS_KEYS)
+    plain = metrics.evaluate_player(Player(), Dataset())
+    assert set(metrics.heldout(plain)) == set(metrics.HELDOUT_KEYS)  # no LPIPS: no LPIPS keys
+
+
+def test_psnr_and_dssim():
+    a = np.zeros((4, 4, 3))
+    assert metrics.psnr(a, a) == float("inf") and metrics.psnr(a, a + 0.1) == pytest.approx(20.0)
+    assert metrics.psnr_of_mse(1e-4) == pytest.approx(40.0)
+    rng = np.random.default_rng(1)
+    b = rng.uniform(0, 1, (16, 16, 3))
+    assert metrics.dssim1(b, b) == pytest.approx(0.0, abs=1e-12) and metrics.dssim1(b, 1 - b) > 0.1
