@@ -66,7 +66,8 @@ def mutate_stg(data: bytes, rng: np.random.Generator) -> tuple[str, bytes]:
     header, section, version = split(data)
     how = str(rng.choice(["json value", "json value", "json delete", "section bytes", "decoder bytes", "any bytes"]))
     if how.startswith("json"):
-        container, key = _leaves(header, [])[rng.integers(len(_leaves(header, [])))]
+        leaves = _leaves(header, [])
+        container, key = leaves[rng.integers(len(leaves))]
         if how == "json delete":
             del container[key]
         else:
