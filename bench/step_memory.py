@@ -8,8 +8,9 @@ setting by default: 20 cameras at 1352x1014, 200k Gaussians), on the CPU.
 The capture is made in memory: a ring of cameras around 50k random Gaussians drawn by the runtime's
 splatter (two frames per camera: memory does not depend on the frame count, the frames being a
 memory-mapped cache in real runs). The trainer starts from `--gaussians` view-volume points. Prints
-the peak resident memory of the process before training (data and initial model), the peak during
-the steps (reset after initialisation: /proc/self/clear_refs), and the seconds per step.
+the peak resident memory of the process before training (data and initial model), the time the
+runtime's splatter takes to draw the initial Gaussians (how deep the scene is), the peak during the
+steps (reset after initialisation: /proc/self/clear_refs), and the seconds per step.
 """
 from __future__ import annotations
 
@@ -86,6 +87,13 @@ def main() -> None:
           f"{args.threads} threads, {os.cpu_count()} CPUs; set-up {time.perf_counter() - t0:.0f} s, "
           f"peak memory so far {peak_rss_gb():.2f} GB", flush=True)
     trainer.train_step()  # compiles the kernels
+    with torch.no_grad():  # for scale: the runtime's splatter drawing the same Gaussians
+        g = trainer.params.at(0.0)
+        arrays = [x.numpy() for x in (g.means, g.quats, g.scales, g.opacities.reshape(-1), g.features)]
+        t0 = time.perf_counter()
+        _, alpha, _ = draw(*arrays, ds.cameras[1])
+        print(f"the runtime's splatter draws these Gaussians for one camera in {time.perf_counter() - t0:.2f} s "
+              f"(mean alpha {alpha.mean():.2f})", flush=True)
     reset_peak_rss()
     t0 = time.perf_counter()
     for _ in range(args.steps):
