@@ -26,7 +26,7 @@ from .job import make_jobs, run_segment
 from .storage import expectations, node_problems, unshared_message, write_marker
 
 USER_ERRORS = (DataError, SegmentError, RenderError)
-INSTALL = 'pip install -e ".[distributed]" (or pip install "ray[default]>=2.9")'
+INSTALL = 'pip install -e ".[distributed]" (or pip install "ray>=2.9")'
 #: Seconds between redraws of the display while tasks run.
 POLL_SECONDS = 0.5
 #: Seconds the storage check waits for every node.
