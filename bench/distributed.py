@@ -72,15 +72,15 @@ def main() -> None:
     rates = {}
     if args.device == "cpu":
         torch.set_num_threads(1)
-        rates["sequential"] = timed("sequential, 1 thread", args.segments, lambda: train_segments(
-            fresh(), root / "seq", config, args.segment_frames, quiet=True) and None)
+        rates["sequential"] = timed("sequential, 1 thread", args.segments, lambda: not train_segments(
+            fresh(), root / "seq", config, args.segment_frames, quiet=True))
         import ray
 
         from stg_train.distributed.ray_cluster import train_on_ray
         for w in workers:
             def run(w=w):
                 t0 = time.perf_counter()
-                ray.init(num_cpus=w, include_dashboard=False, log_to_driver=False, logging_level="WARNING")
+                ray.init(num_cpus=w, include_dashboard=False, log_to_driver=False, logging_level="ERROR")
                 started = time.perf_counter() - t0
                 try:
                     train_on_ray(fresh(), root / f"ray{w}", config, args.segment_frames, quiet=True, threads=1)
@@ -97,8 +97,8 @@ def main() -> None:
             if w > gpus:
                 print(f"{w} GPU workers: not measured, this machine has {gpus} GPU{'s' if gpus > 1 else ''}")
                 continue
-            rates[w] = timed(f"--gpus, {w} GPU worker{'s' if w > 1 else ''}", args.segments, lambda w=w: train_on_devices(
-                fresh(), root / f"gpu{w}", config, args.segment_frames, [str(i) for i in range(w)], quiet=True) and None)
+            rates[w] = timed(f"--gpus, {w} GPU worker{'s' if w > 1 else ''}", args.segments, lambda w=w: not train_on_devices(
+                fresh(), root / f"gpu{w}", config, args.segment_frames, [str(i) for i in range(w)], quiet=True))
     if 1 in rates and 2 in rates:
         print(f"speed-up of 2 workers over 1: {rates[2] / rates[1]:.2f}x")
 

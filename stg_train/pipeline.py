@@ -140,7 +140,7 @@ def train_segments(dataset, out, config: TrainConfig, segment_frames: int, indic
 def prepare_segments(dataset, out: Path, segment_frames: int, indices: Sequence[int] | None, resume: bool,
                      quiet: bool = False):
     """The segments of a run before any is trained: (dataset with its frame cache cut at the segments,
-    plan, indices to train). Checks the indices and OUT's plan (SegmentError), removes leftovers of
+    plan, indices to train). Checks the indices, OUT (creating it) and OUT's plan (SegmentError), removes leftovers of
     killed writes, and without `resume` the marks of finished segments of the chosen ones (so they
     are trained afresh); with it, says which finished segments are kept."""
     plan = plan_segments(dataset.num_frames, segment_frames)
@@ -150,6 +150,10 @@ def prepare_segments(dataset, out: Path, segment_frames: int, indices: Sequence[
         raise SegmentError(f"--segments {','.join(map(str, bad))}: the {dataset.num_frames}-frame video has "
                            f"{len(plan)} segment{'s' if len(plan) > 1 else ''} of {segment_frames} frames "
                            f"(indices 0-{len(plan) - 1})")
+    try:
+        (out / "segments").mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise SegmentError(f"{out}: cannot create the output folder ({e.strerror or e})") from None
     check_plan(out, plan, segment_frames)
     remove_leftovers(out)
     remove_leftovers(out / "segments")

@@ -112,7 +112,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=d.seed, help="random seed (default %(default)s)")
     add_dataset_options(p)
     p.add_argument("--threads", type=positive_int, default=None, metavar="N",
-                   help="CPU threads for torch (default: torch's choice)")
+                   help="CPU threads for torch (default: torch's choice; with --ray, the CPUs and torch threads of "
+                        "each segment's task, default 1; with --gpus, each worker's torch threads)")
     p.add_argument("--no-check", action="store_true",
                    help="skip comparing the runtime's render of the exported file with the trainer's")
     p.add_argument("--no-guided", action="store_true",

@@ -112,7 +112,7 @@ def load_n3v(path, downscale: int = 1, cache_dir=None, prefer_png: bool = False,
     must then have the same count). fps: override the frame rate (default: the videos', else
     scene.json's, else 30). progress: optional callable(done, total) called per decoded frame while the
     cache is built. test_camera: the held-out camera (default cam00, the first camera when there is no
-    cam00).
+    cam00). lazy: decode nothing now (stg_train.data.frames.ChunkedFrames).
 
     Near and far depth bounds per camera come from poses_bounds.npy. Raises DataError, naming the file,
     for every problem with the data.

@@ -50,7 +50,7 @@ def connect(ray, address: str = "auto") -> bool:
         return False
     try:
         ray.init(address=None if address == "auto" else address, log_to_driver=False,
-                 logging_level=logging.WARNING, include_dashboard=False)
+                 logging_level=logging.ERROR, include_dashboard=False)
     except (ConnectionError, ValueError, RuntimeError) as e:
         raise DistributedError(f"--ray {address}: cannot connect to a Ray cluster ({e})") from None
     return True

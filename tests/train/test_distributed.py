@@ -45,7 +45,7 @@ def scene_dir(synthetic_n3v):
 @pytest.fixture(scope="module")
 def local_ray():
     """A local Ray of 2 CPUs for this module (shut down after it)."""
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, logging_level="WARNING")
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, logging_level="ERROR")
     yield ray
     ray.shutdown()
 
@@ -131,9 +131,12 @@ def test_unshared_storage_is_named(local_ray, scene_dir, tmp_path, monkeypatch, 
     assert not (out / "segments" / "00" / "checkpoint.pt").exists()  # nothing trained
 
 
-def test_missing_data_and_missing_ray(scene_dir, tmp_path, monkeypatch, capsys):
+def test_missing_paths_and_missing_ray(local_ray, scene_dir, tmp_path, monkeypatch, capsys):
     assert train_main([str(tmp_path / "nowhere"), "--out", str(tmp_path / "o"), "--ray"] + ARGS) == 2
     assert "nowhere: no such directory" in capsys.readouterr().err
+    (tmp_path / "file").write_text("")
+    assert train_main([str(scene_dir), "--out", str(tmp_path / "file" / "out"), "--ray"] + ARGS) == 2
+    assert "out: cannot create the output folder" in capsys.readouterr().err
     monkeypatch.setitem(sys.modules, "ray", None)  # as without the distributed extra
     assert train_main([str(scene_dir), "--out", str(tmp_path / "o"), "--ray"] + ARGS) == 2
     err = capsys.readouterr().err
