@@ -66,13 +66,16 @@ def check_shared(ray, dataset, out: Path) -> None:
         expected = expectations(dataset, marker, token)
         probe = ray.remote(num_cpus=0, max_retries=0)(node_problems)
         nodes = [n for n in ray.nodes() if n.get("Alive")]
-        refs = {n.get("NodeManagerAddress", n["NodeID"]): probe.options(
-            scheduling_strategy=NodeAffinitySchedulingStrategy(n["NodeID"], soft=False)).remote(expected)
-            for n in nodes}
+        names = [f"{n.get('NodeManagerAddress', '?')} ({n['NodeID'][:8]})" for n in nodes]
+        refs = [probe.options(scheduling_strategy=NodeAffinitySchedulingStrategy(n["NodeID"], soft=False))
+                .remote(expected) for n in nodes]
         try:
-            found = dict(zip(refs, ray.get(list(refs.values()), timeout=CHECK_SECONDS)))
+            found = dict(zip(names, ray.get(refs, timeout=CHECK_SECONDS)))
         except ray.exceptions.GetTimeoutError:
-            raise DistributedError(f"the shared-storage check got no answer from every node within {CHECK_SECONDS} s")
+            raise DistributedError(f"the shared-storage check got no answer from every node within "
+                                   f"{CHECK_SECONDS} s") from None
+        except ray.exceptions.RayError as e:
+            raise DistributedError(f"the shared-storage check failed on a node: {e}") from None
         message = unshared_message(found)
         if message:
             raise DistributedError(message)
