@@ -3,7 +3,7 @@
 - no import cycle between project modules, imports inside functions included;
 - stg_runtime never imports torch, onnx or stg_train;
 - optional backends stay in their own module: gsplat only in stg_train.render.gsplat_backend, CuPy only
-  in stg_runtime.cuda.device;
+  in stg_runtime.cuda.device, Ray only in stg_train.distributed.ray_cluster;
 - Player(device="cpu") renders without importing numba.cuda, torch or onnx.
 """
 from __future__ import annotations
@@ -111,6 +111,7 @@ def test_runtime_never_imports_torch_onnx_or_the_trainer():
 def test_optional_backends_stay_in_their_modules():
     assert _offenders({"gsplat"}, lambda m: m != "stg_train.render.gsplat_backend") == []
     assert _offenders({"cupy"}, lambda m: m != "stg_runtime.cuda.device") == []
+    assert _offenders({"ray"}, lambda m: m != "stg_train.distributed.ray_cluster") == []
 
 
 CPU_PLAYER = r"""

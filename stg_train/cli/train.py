@@ -9,6 +9,7 @@ from pathlib import Path
 from stg_runtime.player import RenderError
 
 from ..data import DataError, load_dataset
+from ..distributed import DistributedError
 from ..data.points import METHODS
 from ..pipeline import DEMO_SCENE, DEMO_TRAINING, run_demo, train
 from ..render import resolve_backend
@@ -23,6 +24,8 @@ EPILOG = """examples:
   stg-train scenes/coffee --out runs/coffee --iterations 30000 --device cuda
   stg-train scenes/coffee --out runs/coffee --resume      continue from runs/coffee/checkpoint.pt
   stg-train scenes/long --out runs/long --segments 0-2    first three 50-frame segments (others elsewhere)
+  stg-train /shared/long --out /shared/runs/long --ray --device cuda   every segment as a task on a Ray cluster
+  stg-train scenes/long --out runs/long --gpus auto --device cuda      segments in parallel on this machine's GPUs
 
 DATA is a dataset folder in one of these layouts (detected, or forced with --layout):
   n3v          Neural 3D Video: camXX.mp4 per camera + poses_bounds.npy (LLFF), optionally
@@ -79,6 +82,17 @@ def build_parser() -> argparse.ArgumentParser:
                         "the others elsewhere, copy their OUT/segments/NN folders into OUT/segments, and "
                         "--resume (or stg-convert merge) writes OUT/model.stg; with --resume, finished "
                         "segments are kept and an unfinished one continues from its checkpoint")
+    parallel = p.add_mutually_exclusive_group()
+    parallel.add_argument("--ray", nargs="?", const="auto", default=None, metavar="ADDRESS",
+                          help="train the segments in parallel as tasks on a Ray cluster: ADDRESS (host:port or "
+                               "ray://host:port), or auto (the default when the flag has no value: RAY_ADDRESS, "
+                               "else a cluster started here with `ray start`, else a new local Ray); one GPU per "
+                               "segment with --device cuda, else --threads CPUs (default 1). DATA and OUT must be "
+                               "on storage every node sees (checked). Needs pip install -e \".[distributed]\"; "
+                               "see docs/distributed.md")
+    parallel.add_argument("--gpus", default=None, metavar="auto|LIST",
+                          help="train the segments in parallel on the GPUs of this machine, one worker process "
+                               "per GPU: auto (every GPU) or indices such as 0,1 (needs --device cuda)")
     p.add_argument("--checkpoint-every", type=positive_int, default=d.checkpoint_every, metavar="N",
                    help="write OUT/checkpoint.pt (atomically) every N steps and at the end (default %(default)s)")
     p.add_argument("--batch", type=positive_int, default=d.batch, metavar="B",
@@ -99,7 +113,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=d.seed, help="random seed (default %(default)s)")
     add_dataset_options(p)
     p.add_argument("--threads", type=positive_int, default=None, metavar="N",
-                   help="CPU threads for torch (default: torch's choice)")
+                   help="CPU threads for torch (default: torch's choice; with --ray, the CPUs and torch threads of "
+                        "each segment's task, default 1; with --gpus, each worker's torch threads)")
     p.add_argument("--no-check", action="store_true",
                    help="skip comparing the runtime's render of the exported file with the trainer's")
     p.add_argument("--no-guided", action="store_true",
@@ -134,13 +149,17 @@ def main(argv=None) -> int:
         parser.error("give a DATA folder (or --demo)")
     if not args.demo and args.out is None:
         parser.error("--out DIR is required")
+    if (args.ray is not None or args.gpus is not None) and args.demo:
+        parser.error("--ray and --gpus train a DATA folder, not --demo")
+    if args.gpus is not None and args.device != "cuda":
+        return error(PROG, "--gpus trains on GPUs: add --device cuda (or use --ray for CPU workers)")
     try:
         splatter = resolve_backend(args.splatter, args.device)
     except ValueError as e:
         return error(PROG, str(e))
     import torch
 
-    if args.device == "cuda" and not torch.cuda.is_available():
+    if args.device == "cuda" and args.ray is None and not torch.cuda.is_available():
         return error(PROG, "--device cuda: torch sees no CUDA device")
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -153,9 +172,15 @@ def main(argv=None) -> int:
             out = Path(args.out or "stg-demo")
             metrics = run_demo(out, config, **options)
         else:
-            dataset = load_dataset(args.data, **dataset_options(args))
-            metrics = train(dataset, Path(args.out), config, **options)
-    except (DataError, SegmentError, RenderError) as e:
+            dataset = load_dataset(args.data, lazy=True, **dataset_options(args))
+            if args.ray is not None or args.gpus is not None:
+                from ..distributed.run import train_parallel
+
+                metrics = train_parallel(dataset, Path(args.out), config, ray=args.ray, gpus=args.gpus,
+                                         threads=args.threads, **options)
+            else:
+                metrics = train(dataset, Path(args.out), config, **options)
+    except (DataError, SegmentError, RenderError, DistributedError) as e:
         return error(PROG, str(e))
     if metrics.get("missing_segments"):
         return 0  # OUT/model.stg waits for the other segments (the pipeline said which)
