@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import sys
 
 PROG = "stg-view"
@@ -59,9 +60,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    try:
-        import viser  # noqa: F401 - only to say clearly that the extra is missing
-    except ImportError:
+    if importlib.util.find_spec("viser") is None:
         print(f"{PROG}: error: the viewer needs viser: python -m pip install 'spacetime-gaussians[viewer]' "
               "(or -e \".[viewer]\" in a checkout)", file=sys.stderr)
         return 2
