@@ -150,6 +150,8 @@ class ClientStream:
         with self.render_lock:
             image = render_image(player, camera, t, self.settings.mode)
         seconds = time.perf_counter() - start
+        if self._stopped.is_set():  # the browser left (or the server stops) while this frame rendered
+            return False
         self.client.scene.set_background_image(image, format="jpeg", jpeg_quality=self.settings.jpeg_quality)
         self._last_key = key
         sent_at = time.monotonic()

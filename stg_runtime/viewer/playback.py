@@ -6,6 +6,7 @@ frame, so playback runs across segment boundaries (the Player picks the segment 
 from __future__ import annotations
 
 import threading
+import time
 
 import numpy as np
 
@@ -24,6 +25,7 @@ class Playback:
         self.loop = True
         self.speed = 1.0
         self._lock = threading.Lock()
+        self._last_tick: float | None = None
 
     @classmethod
     def of(cls, player) -> "Playback":
@@ -41,6 +43,15 @@ class Playback:
         with self._lock:
             self.time = min(max(float(t), self.first), self.last)
             return self.time
+
+    def tick(self, now: float | None = None) -> float:
+        """Advance by the wall-clock seconds since the last tick (time.monotonic(), or `now`); returns
+        the time. Whoever needs the current time calls it: the slider's clock and every browser's
+        stream, so a stream that renders faster than the slider moves still gets a new time per frame."""
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            last, self._last_tick = self._last_tick, now
+        return self.advance(0.0 if last is None else max(now - last, 0.0))
 
     def advance(self, seconds: float) -> float:
         """Move on by `seconds` of wall-clock time (times speed) while playing; returns the time."""

@@ -27,7 +27,7 @@ from .frames import ClientStream, ViewSettings, client_camera, modes_for, render
 from .keyframes import interpolate_path
 from .playback import Playback
 
-#: Ticks per second of the playback clock (the time slider moves at this rate while playing).
+#: Ticks per second of the slider while playing (a browser's stream takes a new time for every frame).
 PLAYBACK_HZ = 30
 
 
@@ -125,7 +125,7 @@ class Viewer:
 
     # -- frames -----------------------------------------------------------------------------------
     def _source(self):
-        return self.player, self.version, self.playback.time
+        return self.player, self.version, self.playback.tick()
 
     def _connect(self, client) -> None:
         stream = ClientStream(client, self._source, self.settings, self.render_lock)
@@ -150,15 +150,13 @@ class Viewer:
 
     def _run_clock(self) -> None:
         """Advance the playback while playing, move the slider, refresh the info panel once a second."""
-        last = time.monotonic()
         last_info = 0.0
         while not self._closed.wait(1.0 / PLAYBACK_HZ):
             now = time.monotonic()
+            t = self.playback.tick(now)
             if self.playback.playing:
-                t = self.playback.advance(now - last)
                 self._time.value = round(t, 4)
                 self._wake_all()
-            last = now
             if now - last_info > 1.0:
                 last_info = now
                 self._update_info()
@@ -253,7 +251,9 @@ class Viewer:
             self._status = gui.add_markdown("", visible=False)
 
         @self._time.on_update
-        def _(_event) -> None:
+        def _(event) -> None:
+            if event.client is None:  # the clock moving the slider while playing
+                return
             self.playback.seek(self._time.value)
             self._frame.content = self._frame_text()
             self._wake_all()

@@ -37,3 +37,15 @@ def test_pause_loop_speed_and_seek():
     p.seek(0.8)
     assert p.advance(0.5) == pytest.approx(0.9) and not p.playing
     assert p.seek(-3) == 0.0 and p.seek(7) == 0.9
+
+
+def test_tick_advances_by_wall_clock_time():
+    p = Playback(0.0, 0.9, fps=10)
+    p.playing = True
+    assert p.tick(now=100.0) == 0.0  # the first tick starts the clock
+    assert p.tick(now=100.3) == pytest.approx(0.3)
+    assert p.tick(now=100.35) == pytest.approx(0.35)
+    p.playing = False
+    assert p.tick(now=105.0) == pytest.approx(0.35)
+    p.playing = True
+    assert p.tick(now=105.1) == pytest.approx(0.45)  # the pause is not counted
