@@ -96,7 +96,7 @@ class Viewer:
         self.host, self.port = host, self.server.get_port()
         self._set_initial_camera()
         self._build_gui()
-        self.server.on_client_connect(self._connect)
+        self.server.on_client_connect(self.connect)
         self.server.on_client_disconnect(self._disconnect)
         self._clock = threading.Thread(target=self._run_clock, name="stg-view clock", daemon=True)
         self._clock.start()
@@ -107,8 +107,8 @@ class Viewer:
 
     # -- the model and the status -----------------------------------------------------------------
     def set_model(self, source: Player | Model) -> None:
-        """Show another model (the same cameras and frames, as in training: the time is kept, clamped
-        to its frames); every browser re-renders."""
+        """Show another model (a newer snapshot in training, or the next segment: the time is kept,
+        clamped to its frames); every browser re-renders."""
         player = source if isinstance(source, Player) else Player(source, device=self.player.device)
         with self.render_lock:
             self.player, self.version = player, self.version + 1
@@ -116,6 +116,8 @@ class Viewer:
             self.playback = Playback.of(player)
             self.playback.playing, self.playback.loop, self.playback.speed = old.playing, old.loop, old.speed
             self.playback.seek(old.time)
+        if (old.first, old.last) != (self.playback.first, self.playback.last):  # another segment's frames
+            self._time.min, self._time.max = self.playback.first, max(self.playback.last, self.playback.first + 1e-3)
         self._wake_all()
 
     def set_status(self, markdown: str) -> None:
@@ -127,7 +129,8 @@ class Viewer:
     def _source(self):
         return self.player, self.version, self.playback.tick()
 
-    def _connect(self, client) -> None:
+    def connect(self, client) -> None:
+        """Stream pictures to a browser (viser calls it for each one that connects)."""
         stream = ClientStream(client, self._source, self.settings, self.render_lock)
         self.streams[client.client_id] = stream
         threading.Thread(target=stream.run, kwargs={"on_error": self._report}, daemon=True,

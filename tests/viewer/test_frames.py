@@ -17,7 +17,8 @@ VECTORS = Path(__file__).resolve().parents[2] / "formats" / "vectors"
 class FakeClient:
     """What ClientStream reads of a viser ClientHandle: camera state and set_background_image."""
 
-    def __init__(self, pose, width, height):
+    def __init__(self, pose, width, height, client_id=-1):
+        self.client_id = client_id
         self.camera = SimpleNamespace(wxyz=pose.wxyz, position=pose.position, fov=pose.fov,
                                       image_width=width, image_height=height)
         self.sent = []
