@@ -22,7 +22,7 @@ from ..camera import Camera, camera_path_json
 from ..model import Model
 from ..player import Player
 from ..video import encode_png
-from .camera import viser_pose
+from .camera import scaled, viser_pose
 from .frames import ClientStream, ViewSettings, client_camera, modes_for, render_image
 from .keyframes import interpolate_path
 from .playback import Playback
@@ -196,7 +196,6 @@ class Viewer:
         view = client_camera(client)
         if view is None:
             return None
-        from .camera import scaled
         camera = scaled(view[1], self.settings.max_pixels)
         with self.render_lock:
             png = encode_png(render_image(self.player, camera, self.playback.time, self.settings.mode))
