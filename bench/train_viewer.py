@@ -5,7 +5,7 @@ without the training viewer, alternated.
     python bench/train_viewer.py [--iterations 150] [--repeats 2] [--every 5] [--no-browser]
 
 Trains the demo's synthetic scene (stg_train.pipeline.DEMO_SCENE, the demo's settings, --iterations
-steps; the scene is written once to --data) with Trainer.train, timing the whole call, once without
+steps; the scene is written once to --data) with Trainer.train, timing steps 2..N, once without
 and once with a TrainingViewer whose snapshot interval is --every seconds, --repeats times in turn.
 With the viewer, a headless chromium (selenium; Debian's chromium and chromium-driver) is connected
 and rests on training camera 0, so every snapshot is rendered and sent, as for a user watching.
@@ -26,31 +26,40 @@ from stg_train.trainer import Trainer, TrainConfig
 from stg_train.viewer import TrainingViewer
 
 
-def run(dataset, config: TrainConfig, viewer: bool, every: float, browser: bool) -> tuple[float, int]:
-    """(wall-clock seconds of Trainer.train, pictures sent) for one run."""
+def run(dataset, config: TrainConfig, viewer: bool, every: float, browser: bool) -> tuple[float, int, float]:
+    """(wall-clock seconds of steps 2..N of Trainer.train, pictures sent, seconds of viewer work: its
+    snapshots and status on the training thread plus its renders) for one run. The clock starts after
+    the first step, once the viewer serves and the browser has connected."""
     trainer = Trainer(dataset, config)
-    callback = TrainingViewer(port=0, every=every, quiet=True) if viewer else None
-    driver = None
+    viewer_callback = TrainingViewer(port=0, every=every, quiet=True) if viewer else None
+    driver, start, sent, work = None, [], 0, []
 
-    def with_browser(t):
-        nonlocal driver
-        callback(t)
-        if browser and driver is None:
-            import view  # bench/view.py, beside this file
-            driver = view.browser(640, 360)
-            driver.get(callback.viewer.url)
+    def callback(t):
+        nonlocal driver, sent
+        if viewer_callback is not None:
+            viewer_callback(t)
+            if browser and driver is None:
+                import view  # bench/view.py, beside this file
+                driver = view.browser(640, 360)
+                driver.get(viewer_callback.viewer.url)
+                while not viewer_callback.viewer.streams:
+                    time.sleep(0.1)
+            if t.step == config.iterations:
+                streams = viewer_callback.viewer.streams.values()
+                sent = sum(s.stats.sent for s in streams)
+                work.append(viewer_callback.seconds + sum(s.stats.render_total for s in streams))
+        if not start:
+            start.append(time.perf_counter())
 
-    start = time.perf_counter()
     try:
-        trainer.train(progress=False, callback=with_browser if viewer else None)
-        seconds = time.perf_counter() - start
+        trainer.train(progress=False, callback=callback)
+        seconds = time.perf_counter() - start[0]
     finally:
         if driver is not None:
             driver.quit()
-        if callback is not None:
-            callback.close()
-    sent = sum(s.stats.sent for s in callback.viewer.streams.values()) if viewer and callback.viewer else 0
-    return seconds, sent
+        if viewer_callback is not None:
+            viewer_callback.close()
+    return seconds, sent, work[0] if work else 0.0
 
 
 def main() -> None:
@@ -68,9 +77,11 @@ def main() -> None:
     times = {False: [], True: []}
     for _ in range(args.repeats):
         for viewer in (False, True):
-            seconds, sent = run(dataset, config, viewer, args.every, args.browser)
+            seconds, sent, work = run(dataset, config, viewer, args.every, args.browser)
             times[viewer].append(seconds)
-            print(f"{'with' if viewer else 'without':<8} viewer: {seconds:7.1f} s" + (f", {sent} pictures sent" if viewer else ""))
+            print(f"{'with' if viewer else 'without':<8} viewer: {seconds:7.1f} s" +
+                  (f", {sent} pictures sent, viewer work {work:.1f} s ({100 * work / seconds:.1f}% of the run)"
+                   if viewer else ""))
     base, with_viewer = np.median(times[False]), np.median(times[True])
     print(f"median: {base:.1f} s without, {with_viewer:.1f} s with the viewer: {100 * (with_viewer / base - 1):+.1f}%")
 

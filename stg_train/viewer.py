@@ -41,9 +41,15 @@ class TrainingViewer:
         self.port, self.host, self.every, self.quiet = port, host, every, quiet
         self.viewer = None
         self.snapshots = 0
+        self.seconds = 0.0  # spent in the callback (snapshots, status), on the training thread
         self._snapshot_at = self._status_at = 0.0
 
     def __call__(self, trainer) -> None:
+        start = time.perf_counter()
+        self._update(trainer)
+        self.seconds += time.perf_counter() - start
+
+    def _update(self, trainer) -> None:
         now = time.monotonic()
         last_step = trainer.step >= trainer.config.iterations
         if self.viewer is None:

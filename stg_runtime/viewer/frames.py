@@ -77,7 +77,8 @@ class ViewSettings:
 @dataclass
 class FrameStats:
     """The last frame sent to a browser: its camera, time, mode, whether a preview, render seconds
-    (Player only) and the wall-clock time it was sent; `sent` counts frames."""
+    (Player only) and the wall-clock time it was sent; `sent` counts frames, `render_total` adds up
+    their render seconds."""
 
     camera: Camera | None = None
     t: float = 0.0
@@ -86,6 +87,7 @@ class FrameStats:
     render_seconds: float = 0.0
     sent_at: float = 0.0
     sent: int = 0
+    render_total: float = 0.0
     intervals: list = field(default_factory=list)  # seconds between the last frames sent (up to 30)
 
 
@@ -160,6 +162,7 @@ class ClientStream:
             s.intervals = (s.intervals + [sent_at - s.sent_at])[-30:]
         s.camera, s.t, s.mode, s.preview, s.render_seconds, s.sent_at = camera, t, self.settings.mode, preview, seconds, sent_at
         s.sent += 1
+        s.render_total += seconds
         return True
 
     def run(self, poll_seconds: float = 0.01, on_error=None) -> None:

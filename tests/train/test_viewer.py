@@ -25,7 +25,16 @@ from tests.viewer.test_frames import FakeClient  # noqa: E402
 SCENE = dict(num_cameras=4, num_frames=4, fps=4.0, width=48, height=32)
 TRAIN = dict(iterations=24, num_points=300, schedule={"refine_start": 8, "refine_every": 8, "reset_every": 0})
 
-pytestmark = pytest.mark.usefixtures("two_torch_threads")
+
+@pytest.fixture(scope="module", autouse=True)
+def one_torch_thread():
+    """Training is bit-reproducible with one torch thread only (docs/performance.md), and the test
+    compares two runs bit for bit."""
+    import torch
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)
 
 
 @pytest.fixture(scope="module")
