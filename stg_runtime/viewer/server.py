@@ -110,12 +110,14 @@ class Viewer:
         """Show another model (a newer snapshot in training, or the next segment: the time is kept,
         clamped to its frames); every browser re-renders."""
         player = source if isinstance(source, Player) else Player(source, device=self.player.device)
-        with self.render_lock:
-            self.player, self.version = player, self.version + 1
-            old = self.playback
-            self.playback = Playback.of(player)
-            self.playback.playing, self.playback.loop, self.playback.speed = old.playing, old.loop, old.speed
-            self.playback.seek(old.time)
+        old, playback = self.playback, Playback.of(player)
+        playback.playing, playback.loop, playback.speed = old.playing, old.loop, old.speed
+        playback.seek(old.time)
+        # no lock (training must not wait for a render): the player is replaced before the version is
+        # bumped and _source reads them in the other order, so a frame of the old player never carries
+        # the new version
+        self.playback, self.player = playback, player
+        self.version += 1
         if (old.first, old.last) != (self.playback.first, self.playback.last):  # another segment's frames
             self._time.min, self._time.max = self.playback.first, max(self.playback.last, self.playback.first + 1e-3)
         self._wake_all()
@@ -127,7 +129,8 @@ class Viewer:
 
     # -- frames -----------------------------------------------------------------------------------
     def _source(self):
-        return self.player, self.version, self.playback.tick()
+        version = self.version
+        return self.player, version, self.playback.tick()
 
     def connect(self, client) -> None:
         """Stream pictures to a browser (viser calls it for each one that connects)."""
