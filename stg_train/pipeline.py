@@ -88,10 +88,10 @@ def train(dataset, out, config: TrainConfig, resume: bool = False, quiet: bool =
     out/metrics.json; returns the metrics. With segment_frames, a video of more frames (or any run
     naming `segments`, a list of indices) is trained segment by segment (train_segments). lpips: the
     LPIPS networks of the evaluation (default: metrics.lpips_models, when the lpips package works).
-    callback(trainer): run after each training step (Trainer.train). Raises DataError and SegmentError
-    naming the problem."""
+    callback(trainer) runs after every training step (Trainer.train's; the training viewer's).
+    Raises DataError and SegmentError naming the problem."""
     if segment_frames and (segments is not None or len(plan_segments(dataset.num_frames, segment_frames)) > 1):
-        return train_segments(dataset, out, config, segment_frames, segments, resume, quiet, check)
+        return train_segments(dataset, out, config, segment_frames, segments, resume, quiet, check, callback)
     lpips = _lpips(quiet) if lpips is None else lpips
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -117,7 +117,7 @@ def train(dataset, out, config: TrainConfig, resume: bool = False, quiet: bool =
 
 
 def train_segments(dataset, out, config: TrainConfig, segment_frames: int, indices: Sequence[int] | None = None,
-                   resume: bool = False, quiet: bool = False, check: bool = True) -> dict:
+                   resume: bool = False, quiet: bool = False, check: bool = True, callback=None) -> dict:
     """Train the segments `indices` (default: all) of `dataset` cut every segment_frames frames into
     OUT/segments/NN, then merge every segment into OUT/model.stg when all are finished, evaluate and
     write OUT/metrics.json; returns the metrics ("missing_segments" lists the indices still to train).
@@ -133,7 +133,8 @@ def train_segments(dataset, out, config: TrainConfig, segment_frames: int, indic
         span, folder = plan[i], segment_dir(out, i, len(plan))
         if not quiet:
             print(f"segment {i} of 0-{len(plan) - 1} ({span.frames()}) -> {folder}", file=sys.stderr)
-        train(dataset.frame_range(span.start, span.count), folder, config, resume, quiet, check, lpips=lpips)
+        train(dataset.frame_range(span.start, span.count), folder, config, resume, quiet, check, lpips=lpips,
+              callback=callback)
     return finish_segments(dataset, out, config, segment_frames, quiet, lpips)
 
 
@@ -226,14 +227,14 @@ def model_frames(player: Player, dataset, name) -> range:
 
 
 def run_demo(out, config: TrainConfig, resume: bool = False, quiet: bool = False, check: bool = True,
-             segment_frames: int | None = None, segments: Sequence[int] | None = None) -> dict:
+             segment_frames: int | None = None, segments: Sequence[int] | None = None, callback=None) -> dict:
     """The demo: the synthetic scene written into OUT/data (once), trained with `config`, and a
     novel-view video OUT/orbit.mp4 along an orbit around the training cameras; returns the metrics (no
     video while segments are missing)."""
     out = Path(out)
     data = ensure_demo_scene(out / "data", announce=not quiet)
     dataset = load_dataset(data, show_progress=not quiet, lazy=True)
-    metrics = train(dataset, out, config, resume, quiet, check, segment_frames, segments)
+    metrics = train(dataset, out, config, resume, quiet, check, segment_frames, segments, callback=callback)
     if metrics.get("missing_segments"):
         return metrics  # OUT/model.stg waits for the other segments (train_segments said which)
     player = Player(out / "model.stg", device="cpu")

@@ -49,6 +49,12 @@ def _segment_list(text: str) -> list[int]:
         raise argparse.ArgumentTypeError(str(e)) from None
 
 
+def _port(text: str) -> int:
+    if not text.isdigit() or int(text) > 65535:
+        raise argparse.ArgumentTypeError(f"a port is a number 0..65535, got {text!r}")
+    return int(text)
+
+
 def build_parser() -> argparse.ArgumentParser:
     d = TrainConfig()
     p = argparse.ArgumentParser(
@@ -120,6 +126,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-guided", action="store_true",
                    help="no guided sampling (new Gaussians along the rays of high-error patches, the paper's "
                         "Sec. 4.4; on by default)")
+    p.add_argument("--viewer", nargs="?", type=_port, const=8080, default=None, metavar="PORT",
+                   help="show the model in the browser while it trains, at http://127.0.0.1:PORT (default "
+                        "8080; needs the viewer extra): the current parameters every few seconds, and the "
+                        "step, loss, PSNR and Gaussians (docs/viewer.md)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--demo", action="store_true",
                    help=f"generate the synthetic scene ({DEMO_SCENE['cameras']} cameras x {DEMO_SCENE['frames']} "
@@ -166,6 +176,14 @@ def main(argv=None) -> int:
     config = _config(args, splatter)
     options = dict(resume=args.resume, quiet=args.quiet, check=not args.no_check,
                    segment_frames=args.segment_frames, segments=args.segments)
+    if args.viewer is not None:
+        try:
+            from ..viewer import TrainingViewer
+            options["callback"] = TrainingViewer(args.viewer, quiet=args.quiet)
+        except ImportError as e:
+            return error(PROG, f"--viewer needs the viewer extra (python -m pip install -e \".[viewer]\"): {e}")
+        except OSError as e:  # the port is taken
+            return error(PROG, f"--viewer: {e}")
     start = time.perf_counter()
     try:
         if args.demo:
@@ -182,6 +200,9 @@ def main(argv=None) -> int:
                 metrics = train(dataset, Path(args.out), config, **options)
     except (DataError, SegmentError, RenderError, DistributedError) as e:
         return error(PROG, str(e))
+    finally:
+        if options.get("callback") is not None:
+            options["callback"].close()
     if metrics.get("missing_segments"):
         return 0  # OUT/model.stg waits for the other segments (the pipeline said which)
     print(format_table(metrics["heldout"], metrics["file_bytes"], metrics["gaussians"]))
