@@ -13,6 +13,7 @@ from ..distributed import DistributedError
 from ..data.points import METHODS
 from ..pipeline import DEMO_SCENE, DEMO_TRAINING, run_demo, train
 from ..render import resolve_backend
+from ..threads import set_cpu_threads
 from ..segments import SegmentError, parse_segment_list
 from ..trainer import TrainConfig
 from .common import add_dataset_options, dataset_options, error, format_table, positive_int
@@ -119,8 +120,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=d.seed, help="random seed (default %(default)s)")
     add_dataset_options(p)
     p.add_argument("--threads", type=positive_int, default=None, metavar="N",
-                   help="CPU threads for torch (default: torch's choice; with --ray, the CPUs and torch threads of "
-                        "each segment's task, default 1; with --gpus, each worker's torch threads)")
+                   help="CPU threads for torch and the numba splatter (default: the cores; with --ray, the CPUs "
+                        "and threads of each segment's task, default 1; with --gpus, each worker's threads)")
     p.add_argument("--no-check", action="store_true",
                    help="skip comparing the runtime's render of the exported file with the trainer's")
     p.add_argument("--no-guided", action="store_true",
@@ -172,7 +173,7 @@ def main(argv=None) -> int:
     if args.device == "cuda" and args.ray is None and not torch.cuda.is_available():
         return error(PROG, "--device cuda: torch sees no CUDA device")
     if args.threads:
-        torch.set_num_threads(args.threads)
+        set_cpu_threads(args.threads)
     config = _config(args, splatter)
     options = dict(resume=args.resume, quiet=args.quiet, check=not args.no_check,
                    segment_frames=args.segment_frames, segments=args.segments)

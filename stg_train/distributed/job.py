@@ -16,6 +16,7 @@ from typing import Callable
 
 from ..pipeline import train
 from ..segments import segment_dir
+from ..threads import set_cpu_threads
 from ..trainer import TrainConfig
 
 #: Seconds between a job's progress reports.
@@ -25,7 +26,7 @@ REPORT_INTERVAL = 0.5
 @dataclass
 class SegmentJob:
     """Segment `index` of the plan: train `dataset` (the segment's view) into `folder` with `config`.
-    threads: torch CPU threads of the worker (None: torch's choice); check: the export check."""
+    threads: CPU threads of the worker, torch's and numba's (None: their choice); check: the export check."""
 
     index: int
     dataset: object
@@ -55,10 +56,8 @@ def run_segment(job: SegmentJob, report: Callable[..., None], on_step: Callable 
     REPORT_INTERVAL seconds, and state="done" at the end. on_step(index, trainer): called after each
     training step (after the checkpoint of that step is written).
     """
-    import torch
-
     if job.threads:
-        torch.set_num_threads(job.threads)
+        set_cpu_threads(job.threads)
     report(job.index, state="running", host=socket.gethostname())
     last = 0.0
 
