@@ -15,17 +15,15 @@ output arrays' dtype. One Gaussian per iteration, in parallel.
 from __future__ import annotations
 
 import math
-import os
 
 import numba
 import numpy as np
 
 from stg_runtime.spec import BLUR, MIN_ALPHA, NEAR
 
-CACHE = os.environ.get("STG_NO_CACHE") != "1"
 
 
-@numba.njit(cache=CACHE)
+@numba.njit(cache=True)
 def _rotation(qw, qx, qy, qz):
     """The rotation matrix of the quaternion (w, x, y, z), assumed unit, as 9 row-major entries."""
     return (1.0 - 2.0 * (qy * qy + qz * qz), 2.0 * (qx * qy - qw * qz), 2.0 * (qx * qz + qw * qy),
@@ -33,7 +31,7 @@ def _rotation(qw, qx, qy, qz):
             2.0 * (qx * qz - qw * qy), 2.0 * (qy * qz + qw * qx), 1.0 - 2.0 * (qx * qx + qy * qy))
 
 
-@numba.njit(cache=CACHE)
+@numba.njit(cache=True)
 def _axes(cam, quats, scales, i):
     """(M as 9 row-major entries: the Gaussian's scaled axes in camera space, M = R Rq S; the unit
     quaternion (4); its norm before normalising)."""
@@ -49,7 +47,7 @@ def _axes(cam, quats, scales, i):
     return m, (qw, qx, qy, qz), norm
 
 
-@numba.njit(cache=CACHE)
+@numba.njit(cache=True)
 def _jacobian(cam, x, y, z):
     """The EWA Jacobian's non-zero entries (j00, j02, j11, j12), the clamped x/z and y/z, and whether each
     was inside its range (a gradient flows through it)."""
@@ -61,7 +59,7 @@ def _jacobian(cam, x, y, z):
     return cam[12] / z, -cam[12] * xz / z, cam[13] / z, -cam[13] * yz / z, xz, yz, x_free, y_free
 
 
-@numba.njit(parallel=True, cache=CACHE)
+@numba.njit(parallel=True, cache=True)
 def forward(means, quats, scales, opacities, cam, means2d, conic, depth, radius, valid):
     """Fill means2d (M, 2), conic (M, 3), depth (M,), radius (M,) int64 and valid (M,) bool."""
     for i in numba.prange(means.shape[0]):
@@ -102,7 +100,7 @@ def forward(means, quats, scales, opacities, cam, means2d, conic, depth, radius,
         radius[i] = int(math.ceil(3.0 * math.sqrt(max(lam, 0.0))))
 
 
-@numba.njit(parallel=True, cache=CACHE)
+@numba.njit(parallel=True, cache=True)
 def backward(means, quats, scales, cam, valid, g_means2d, g_conic, g_depth, g_means, g_quats, g_scales):
     """The vector-Jacobian product of `forward`: from dL/d means2d (M, 2), dL/d conic (M, 3) and
     dL/d depth (M,), fill dL/d means (M, 3), dL/d quats (M, 4) and dL/d scales (M, 3)."""
@@ -129,7 +127,7 @@ def backward(means, quats, scales, cam, valid, g_means2d, g_conic, g_depth, g_me
             g_means[i, k] = cam[k] * gx + cam[3 + k] * gy + cam[6 + k] * gz
 
 
-@numba.njit(cache=CACHE)
+@numba.njit(cache=True)
 def _covariance_backward(cam, quats, scales, g_conic, i, x, y, z, gx, gy, gz, g_quats, g_scales):
     """Add the conic's gradient to (gx, gy, gz) (camera space) and write dL/d quats and dL/d scales of
     Gaussian i. Returns the new (gx, gy, gz)."""
