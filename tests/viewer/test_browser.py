@@ -135,7 +135,7 @@ def test_browser_shows_the_model_and_follows_the_time_slider(browser):
     finally:
         viewer.proc.send_signal(signal.SIGINT)
         try:
-            code = viewer.proc.wait(timeout=30)
+            code = viewer.proc.wait(timeout=90)  # (a busy machine can take long to stop the threads)
         except subprocess.TimeoutExpired:
             viewer.proc.kill()
             raise
