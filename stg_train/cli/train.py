@@ -14,7 +14,7 @@ from ..pipeline import DEMO_SCENE, DEMO_TRAINING, run_demo, train
 from ..render import resolve_backend
 from ..segments import SegmentError, parse_segment_list
 from ..trainer import TrainConfig
-from .common import add_dataset_options, dataset_options, error, format_table, positive_int
+from .common import add_dataset_options, check_dataset_options, dataset_options, error, format_table, positive_int
 
 PROG = "stg-train"
 
@@ -86,17 +86,19 @@ def build_parser() -> argparse.ArgumentParser:
                    help="initial Gaussians: the most SfM points kept (a random subset beyond), or the number "
                         f"sampled in the cameras' common view volume (default {d.num_points}, the demo's "
                         f"{DEMO_TRAINING['num_points']} with --demo)")
-    p.add_argument("--init", choices=METHODS, default=None,
+    p.add_argument("--init", choices=METHODS, default="auto",
                    help="initial points: sfm = SIFT features matched and triangulated with the known poses "
-                        "(pycolmap, CPU) on every --init-every'th frame, cached in DATA/.stg_cache/sfm, falling "
-                        "back to volume with a warning when it finds too few points; volume = sampled in the "
-                        "cameras' common view volume at photo-consistent depths, needs the layout's near/far "
-                        "bounds (default: volume where the layout has near/far bounds, as N3V and the demo, "
-                        "else sfm)")
+                        "(pycolmap, CPU) on every --init-every'th frame, cached in DATA/.stg_cache/sfm; volume = "
+                        "sampled in the cameras' common view volume at photo-consistent depths between the "
+                        "near/far depth bounds; combined = the SfM points plus volume samples where they leave "
+                        "the training images uncovered; sfm and combined fall back to volume with a warning when "
+                        "SfM finds too few points; auto = volume where the layout stores near/far bounds (N3V, "
+                        "the demo), else combined (default auto). Bounds: --near/--far, else the layout's, else "
+                        "the COLMAP model's points, else the SfM points")
     p.add_argument("--init-every", type=positive_int, default=1, metavar="N",
                    help="run SfM on every N-th frame (default %(default)s: every frame, as the paper)")
     p.add_argument("--seed", type=int, default=d.seed, help="random seed (default %(default)s)")
-    add_dataset_options(p)
+    add_dataset_options(p, depth_bounds=True)
     p.add_argument("--threads", type=positive_int, default=None, metavar="N",
                    help="CPU threads for torch (default: torch's choice)")
     p.add_argument("--no-check", action="store_true",
@@ -133,6 +135,7 @@ def main(argv=None) -> int:
         parser.error("give a DATA folder (or --demo)")
     if not args.demo and args.out is None:
         parser.error("--out DIR is required")
+    check_dataset_options(parser, args)
     try:
         splatter = resolve_backend(args.splatter, args.device)
     except ValueError as e:
