@@ -122,13 +122,16 @@ def test_blank_scene_falls_back_to_the_view_volume():
     ds = fake_dataset(num_frames=2, value=128)  # untextured: no SIFT features, no points
     assert len(sfm.sfm_points(ds)[0]) == 0
     with pytest.warns(UserWarning, match="structure-from-motion found only 0 points"):
-        xyz, rgb, t_center = initial_points(ds, "sfm", 60, np.random.default_rng(3))
+        init = initial_points(ds, "sfm", 60, np.random.default_rng(3))
+    assert init.method == "volume" and init.volume_points == 60
     expected = sample_view_volume(ds, 60, np.random.default_rng(3))
-    for a, b in zip((xyz, rgb, t_center), expected):
+    for a, b in zip((init.xyz, init.rgb, init.t_center), expected):
         np.testing.assert_array_equal(a, b)
     ds.bounds = None  # a layout without near/far bounds: no fallback, a clear error
     with pytest.raises(DataError, match="found only 0 points.*no near/far depth bounds"):
         initial_points(ds, "sfm", 60, np.random.default_rng(3))
+    with pytest.raises(DataError, match="found only 0 points.*no near/far depth bounds"):
+        initial_points(ds, "combined", 60, np.random.default_rng(3))
     with pytest.raises(DataError, match="needs near/far depth bounds"):
         initial_points(ds, "volume", 60, np.random.default_rng(3))
 
