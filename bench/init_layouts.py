@@ -97,7 +97,7 @@ def main() -> None:
     ap.add_argument("--iterations", type=int, default=500)
     ap.add_argument("--points", type=int, default=None, help="initial points (default: TrainConfig's)")
     ap.add_argument("--init-every", type=int, default=1)
-    ap.add_argument("--splatter", default="torch")
+    ap.add_argument("--splatter", default="torch", help="as stg-train --splatter (default torch, as the docs' figures)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--cameras", type=int, default=12)
     ap.add_argument("--frames", type=int, default=30)

@@ -3,9 +3,9 @@
     sfm       structure-from-motion points (stg_train.data.sfm) only;
     volume    samples in the training cameras' view volume at photo-consistent depths
               (stg_train.data.volume), between the cameras' near/far depth bounds;
-    combined  the SfM points, plus view-volume samples from the pixels that the projected SfM points
-              leave uncovered (stg_train.data.coverage), as many as the volume initialisation would put
-              there: --points x the uncovered fraction of the training cameras' pixels;
+    combined  the SfM points (at most --points x the fraction of the training cameras' pixels they
+              cover, stg_train.data.coverage), and the rest of --points as view-volume samples drawn
+              from the pixels that the projected SfM points leave uncovered;
     auto      default_method: volume where the layout stores near/far bounds (N3V, the demo), else
               combined.
 
@@ -158,11 +158,11 @@ def _combined(dataset, num_points, rng, depth_candidates, xyz, rgb, t_center, bo
     cams = [dataset.cameras[i] for i in dataset.train_cameras]
     radius = coverage_radius(dataset.width)
     covered = coverage_masks(cams, xyz, radius)
-    n_volume = int(round(num_points * (1.0 - covered.mean())))
-    if len(xyz) > num_points - n_volume:  # keep room for the holes' samples; the subset leaves more holes
-        xyz, rgb, t_center = _subset(rng, max(num_points - n_volume, 0), xyz, rgb, t_center)
+    most = int(round(num_points * covered.mean()))  # the covered share of the points
+    if len(xyz) > most:  # a subset, which leaves more holes
+        xyz, rgb, t_center = _subset(rng, most, xyz, rgb, t_center)
         covered = coverage_masks(cams, xyz, radius)
-        n_volume = min(int(round(num_points * (1.0 - covered.mean()))), num_points - len(xyz))
+    n_volume = num_points - len(xyz) if not covered.all() else 0
     coverage = covered.reshape(len(cams), -1).mean(axis=1)
     parts = [(xyz, rgb.astype(np.float32), t_center.astype(np.float32))]
     if n_volume > 0:

@@ -131,8 +131,7 @@ def test_combined_fills_the_holes_of_the_sfm_points(monkeypatch):
     covered = coverage_masks(train, sfm[0])
     np.testing.assert_allclose(init.coverage, covered.reshape(len(train), -1).mean(1))
     assert 0.3 < init.coverage.mean() < 0.7  # about the left half
-    assert init.sfm_points == 3000 and init.volume_points == round(8000 * (1 - covered.mean()))
-    assert len(init.xyz) == init.sfm_points + init.volume_points <= 8000
+    assert init.sfm_points == 3000 and init.volume_points == 5000 == len(init.xyz) - 3000
     np.testing.assert_array_equal(init.xyz[:3000], sfm[0].astype(np.float64))
     hole = init.xyz[3000:]
     in_a_hole = np.zeros(len(hole), bool)  # each sample comes from an uncovered pixel of some training camera
@@ -152,8 +151,10 @@ def test_combined_keeps_room_for_the_holes_and_falls_back(monkeypatch):
     ds = fake_dataset()
     sfm = _left_half_sfm(ds)
     monkeypatch.setattr(points_module, "sfm_points", lambda *a, **k: sfm)
-    init = initial_points(ds, "combined", 1000, np.random.default_rng(0))
-    assert init.sfm_points + init.volume_points <= 1000 and init.sfm_points < 1000 and init.volume_points > 300
+    init = initial_points(ds, "combined", 1000, np.random.default_rng(0))  # room for the holes' samples
+    assert init.sfm_points + init.volume_points == 1000 and init.volume_points > 300
+    assert init.sfm_points == round(1000 * coverage_masks([ds.cameras[i] for i in ds.train_cameras],
+                                                          sfm[0]).mean())
     few = tuple(a[:50] for a in sfm)
     monkeypatch.setattr(points_module, "sfm_points", lambda *a, **k: few)
     with pytest.raises(points_module.DataError, match="no near/far depth bounds.*--near and --far"):
