@@ -125,15 +125,34 @@ def _exp_neg_impl(p):
 
 
 @numba.njit(inline="always")
-def _centres(x0, y0, dtype):
-    """The tile's column centres x0 + l + 0.5 (TILE), row centres y0 + r + 0.5 (TILE) and a spare slot,
-    in the working dtype: computing them in the loops would mix integers in and make the arithmetic
-    float64 (numba's promotion of int64 with float32)."""
-    centre = np.empty(2 * TILE + 1, dtype)
-    for l in range(TILE):
-        centre[l] = x0 + l + 0.5
-        centre[TILE + l] = y0 + l + 0.5
-    return centre
+def _tile_state(planes, x0, y0, dtype):
+    """A tile's state: `planes` planes of PLANE pixels (row-major within the tile), zeros, except the
+    planes CENTRE_X and CENTRE_Y, the pixel centres (x0 + column + 0.5, y0 + row + 0.5), held in the
+    working dtype (computing them in the loops would mix integers in, and numba promotes int64 with
+    float32 to float64), and a spare scalar slot at the end."""
+    S = np.zeros(planes * PLANE + 1, dtype)
+    for r in range(TILE):
+        for l in range(TILE):
+            S[CENTRE_X * PLANE + r * TILE + l] = x0 + l + 0.5
+            S[CENTRE_Y * PLANE + r * TILE + l] = y0 + r + 0.5
+    return S
+
+
+@numba.njit(inline="always")
+def _as_dtype(S, value):
+    """value (an integer) in the dtype of S, through its spare slot."""
+    S[S.shape[0] - 1] = value
+    return S[S.shape[0] - 1]
+
+
+#: Planes of a tile's state shared by both kernels: the pixel centres.
+CENTRE_X, CENTRE_Y = 0, 1
+#: The forward kernel's other planes: transmittance, entry count, the current weights, sum w, sum w z,
+#: then sum w f per channel.
+F_T, F_COUNT, F_WEIGHT, F_ALPHA, F_DEPTH, F_FEATURES = 2, 3, 4, 5, 6, 7
+#: The backward kernel's other planes: transmittance, entry count, the suffix sum of w (g . v), g . v,
+#: the current weights, dL/d alpha, dL/d depth sum, then dL/d features per channel.
+B_T, B_COUNT, B_SUFFIX, B_GV, B_WEIGHT, B_GALPHA, B_GDEPTH, B_GFEATURES = 2, 3, 4, 5, 6, 7, 8, 9
 
 
 @numba.njit(parallel=True, cache=CACHE, fastmath={"contract"})
@@ -146,68 +165,67 @@ def forward(means2d, conic, opacity, features, depth, rects, tile_start, tile_id
     transmittance, negated where the pixel stopped; n_last (H, W) int32: how many list entries the
     pixel went through up to its last added contribution. H and W are padded to whole tiles.
 
-    A tile's state is one array of planes of PLANE pixels (row-major): T, the entry count, the
-    current weights, sum w, sum w z, sum w f_c. Per Gaussian and row, one branch-free loop over the
-    row's TILE pixels (pixels outside the Gaussian's rectangle are masked) reads and writes the planes
-    at constant offsets, which LLVM vectorises without aliasing checks; then one loop per channel."""
+    A tile's state is one array of planes (F_*). Per Gaussian, the rows of its rectangle in the tile
+    are one run of pixels, composited by one branch-free loop (pixels outside the rectangle masked)
+    that reads and writes the planes at constant offsets, which LLVM vectorises without aliasing
+    checks; then one loop per channel."""
     half, one, zero, max_alpha, min_alpha, t_stop = consts[0], consts[1], consts[2], consts[3], consts[4], consts[5]
     channels = features.shape[1]
     for i in numba.prange(tile_order.shape[0]):
         tile = tile_order[i]
         x0 = (tile % tiles_x) * TILE
         y0 = (tile // tiles_x) * TILE
-        S = np.zeros((5 + channels) * PLANE, out.dtype)
-        S[:PLANE] = one
-        centre = _centres(x0, y0, out.dtype)
+        S = _tile_state(F_FEATURES + channels, x0, y0, out.dtype)
+        S[F_T * PLANE:(F_T + 1) * PLANE] = one
         n_live = PLANE
         start = tile_start[tile]
         for k in range(start, tile_start[tile + 1]):
             g = tile_ids[k]
             mx, my, a, b, c = means2d[g, 0], means2d[g, 1], conic[g, 0], conic[g, 1], conic[g, 2]
             o, z = opacity[g], depth[g]
-            xa, xb = rects[g, 0] - x0, rects[g, 1] - x0  # the rectangle's columns, relative to the tile
-            centre[2 * TILE] = k - start + 1
-            count = centre[2 * TILE]
-            for y in range(max(rects[g, 2], y0), min(rects[g, 3], y0 + TILE - 1) + 1):
-                dy = centre[TILE + y - y0] - my
-                row = (y - y0) * TILE
-                V = S[row:]
-                stops = 0
-                for l in range(TILE):
-                    dx = centre[l] - mx
-                    power = half * (a * dx * dx + c * dy * dy) + b * dx * dy
-                    alpha = min(max_alpha, o * exp_neg(power))
-                    t = V[l]
-                    ok = (l >= xa) & (l <= xb) & (t > zero) & (power >= zero) & (alpha >= min_alpha)
-                    t_next = t * (one - alpha)
-                    stop = ok & (t_next < t_stop)
-                    add = ok & (t_next >= t_stop)
-                    w = alpha * t if add else zero
-                    V[l] = t_next if add else (-t if stop else t)
-                    V[l + PLANE] = count if add else V[l + PLANE]
-                    V[l + 2 * PLANE] = w
-                    V[l + 3 * PLANE] += w
-                    V[l + 4 * PLANE] += w * z
-                    stops += stop
-                n_live -= stops
-                for ch in range(channels):
-                    f = features[g, ch]
-                    F = S[(5 + ch) * PLANE + row:]
-                    for l in range(TILE):
-                        F[l] += V[l + 2 * PLANE] * f
+            left = S[CENTRE_X * PLANE + max(rects[g, 0] - x0, 0)]  # the rectangle's first and last columns
+            right = S[CENTRE_X * PLANE + min(rects[g, 1] - x0, TILE - 1)]
+            count = _as_dtype(S, k - start + 1)
+            lo = (max(rects[g, 2], y0) - y0) * TILE
+            V = S[lo:]
+            stops = 0
+            for l in range((min(rects[g, 3], y0 + TILE - 1) - y0 + 1) * TILE - lo):
+                px = V[l + CENTRE_X * PLANE]
+                dx = px - mx
+                dy = V[l + CENTRE_Y * PLANE] - my
+                power = half * (a * dx * dx + c * dy * dy) + b * dx * dy
+                alpha = min(max_alpha, o * exp_neg(power))
+                t = V[l + F_T * PLANE]
+                ok = (px >= left) & (px <= right) & (t > zero) & (power >= zero) & (alpha >= min_alpha)
+                t_next = t * (one - alpha)
+                stop = ok & (t_next < t_stop)
+                add = ok & (t_next >= t_stop)
+                w = alpha * t if add else zero
+                V[l + F_T * PLANE] = t_next if add else (-t if stop else t)
+                V[l + F_COUNT * PLANE] = count if add else V[l + F_COUNT * PLANE]
+                V[l + F_WEIGHT * PLANE] = w
+                V[l + F_ALPHA * PLANE] += w
+                V[l + F_DEPTH * PLANE] += w * z
+                stops += stop
+            n_live -= stops
+            for ch in range(channels):
+                f = features[g, ch]
+                F = S[(F_FEATURES + ch) * PLANE + lo:]
+                for l in range((min(rects[g, 3], y0 + TILE - 1) - y0 + 1) * TILE - lo):
+                    F[l] += V[l + F_WEIGHT * PLANE] * f
             if n_live == 0:
                 break
         for r in range(TILE):
             y = y0 + r
             for l in range(TILE):
                 p = r * TILE + l
-                trans[y, x0 + l] = S[p]
-                n_last[y, x0 + l] = np.int32(S[PLANE + p])
-                out[channels, y, x0 + l] = S[3 * PLANE + p]
-                out[channels + 1, y, x0 + l] = S[4 * PLANE + p]
+                trans[y, x0 + l] = S[F_T * PLANE + p]
+                n_last[y, x0 + l] = np.int32(S[F_COUNT * PLANE + p])
+                out[channels, y, x0 + l] = S[F_ALPHA * PLANE + p]
+                out[channels + 1, y, x0 + l] = S[F_DEPTH * PLANE + p]
             for ch in range(channels):
                 for l in range(TILE):
-                    out[ch, y, x0 + l] = S[(5 + ch) * PLANE + r * TILE + l]
+                    out[ch, y, x0 + l] = S[(F_FEATURES + ch) * PLANE + r * TILE + l]
 
 
 @numba.njit(parallel=True, cache=CACHE, fastmath={"contract", "reassoc", "nsz"})
@@ -219,86 +237,84 @@ def backward(means2d, conic, opacity, features, depth, rects, tile_start, tile_i
 
     trans (H, W): the forward pass's final transmittance, made non-negative; n_last (H, W) from the
     forward pass; grad_out (C + 2, H, W): dL/d out, planes as forward's `out`; all padded to whole
-    tiles. A tile's state is one array of planes, as in `forward`: T, the entry count, the suffix sum
-    of w (g . v), g . v of the current Gaussian, its weights, then dL/d out (alpha, depth, the
-    channels). Per Gaussian and row: g . v first, then one branch-free loop over the row (vectorised,
-    its sums reassociated), then one sum per channel."""
+    tiles. A tile's state is one array of planes (B_*), walked as in `forward`: per Gaussian, g . v
+    over its run of pixels, then one branch-free loop (vectorised, its sums reassociated), then one
+    sum per channel."""
     half, one, zero, max_alpha, min_alpha = consts[0], consts[1], consts[2], consts[3], consts[4]
     channels = features.shape[1]
     for q in numba.prange(part_start.shape[0] - 1):
         G = grads[q]
-        S = np.empty((7 + channels) * PLANE, grads.dtype)
         for j in range(part_start[q], part_start[q + 1]):
             tile = parts[j]
             x0 = (tile % tiles_x) * TILE
             y0 = (tile // tiles_x) * TILE
-            centre = _centres(x0, y0, grads.dtype)
+            S = _tile_state(B_GFEATURES + channels, x0, y0, grads.dtype)
             deepest = 0
             for r in range(TILE):
                 y = y0 + r
                 for l in range(TILE):
                     p = r * TILE + l
-                    S[p] = trans[y, x0 + l]
-                    S[PLANE + p] = n_last[y, x0 + l]
-                    S[2 * PLANE + p] = zero
-                    S[5 * PLANE + p] = grad_out[channels, y, x0 + l]
-                    S[6 * PLANE + p] = grad_out[channels + 1, y, x0 + l]
+                    S[B_T * PLANE + p] = trans[y, x0 + l]
+                    S[B_COUNT * PLANE + p] = n_last[y, x0 + l]
+                    S[B_GALPHA * PLANE + p] = grad_out[channels, y, x0 + l]
+                    S[B_GDEPTH * PLANE + p] = grad_out[channels + 1, y, x0 + l]
                     deepest = max(deepest, n_last[y, x0 + l])
                 for ch in range(channels):
                     for l in range(TILE):
-                        S[(7 + ch) * PLANE + r * TILE + l] = grad_out[ch, y, x0 + l]
+                        S[(B_GFEATURES + ch) * PLANE + r * TILE + l] = grad_out[ch, y, x0 + l]
             start = tile_start[tile]
             for k in range(start + deepest - 1, start - 1, -1):
                 g = tile_ids[k]
                 mx, my, a, b, c = means2d[g, 0], means2d[g, 1], conic[g, 0], conic[g, 1], conic[g, 2]
                 o, z = opacity[g], depth[g]
-                xa, xb = rects[g, 0] - x0, rects[g, 1] - x0
-                centre[2 * TILE] = k - start
-                entry = centre[2 * TILE]
+                left = S[CENTRE_X * PLANE + max(rects[g, 0] - x0, 0)]
+                right = S[CENTRE_X * PLANE + min(rects[g, 1] - x0, TILE - 1)]
+                entry = _as_dtype(S, k - start)
+                lo = (max(rects[g, 2], y0) - y0) * TILE
+                n = (min(rects[g, 3], y0 + TILE - 1) - y0 + 1) * TILE - lo
+                V = S[lo:]
+                for l in range(n):
+                    V[l + B_GV * PLANE] = V[l + B_GALPHA * PLANE] + V[l + B_GDEPTH * PLANE] * z
+                for ch in range(channels):
+                    f = features[g, ch]
+                    F = S[(B_GFEATURES + ch) * PLANE + lo:]
+                    for l in range(n):
+                        V[l + B_GV * PLANE] += F[l] * f
                 s_o = s_mx = s_my = s_a = s_b = s_c = s_z = zero
-                for y in range(max(rects[g, 2], y0), min(rects[g, 3], y0 + TILE - 1) + 1):
-                    dy = centre[TILE + y - y0] - my
-                    row = (y - y0) * TILE
-                    V = S[row:]
-                    for l in range(TILE):
-                        V[l + 3 * PLANE] = V[l + 5 * PLANE] + V[l + 6 * PLANE] * z
-                    for ch in range(channels):
-                        f = features[g, ch]
-                        F = S[(7 + ch) * PLANE + row:]
-                        for l in range(TILE):
-                            V[l + 3 * PLANE] += F[l] * f
-                    for l in range(TILE):
-                        dx = centre[l] - mx
-                        power = half * (a * dx * dx + c * dy * dy) + b * dx * dy
-                        e = exp_neg(power)
-                        raw = o * e
-                        alpha = min(max_alpha, raw)
-                        act = ((l >= xa) & (l <= xb) & (entry < V[l + PLANE]) & (power >= zero)
-                               & (alpha >= min_alpha))
-                        t_after = V[l]
-                        inv = one / (one - alpha)
-                        t_before = t_after * inv
-                        w = alpha * t_before if act else zero
-                        gv = V[l + 3 * PLANE]
-                        d_alpha = t_before * gv - V[l + 2 * PLANE] * inv
-                        V[l + 2 * PLANE] += w * gv
-                        V[l] = t_before if act else t_after
-                        V[l + 4 * PLANE] = w
-                        s_z += w * V[l + 6 * PLANE]
-                        d_alpha = d_alpha if act & (raw <= max_alpha) else zero  # capped: no gradient
-                        s_o += d_alpha * (e if act else zero)
-                        d_power = -d_alpha * alpha
-                        s_mx -= d_power * (a * dx + b * dy)
-                        s_my -= d_power * (b * dx + c * dy)
-                        s_a += d_power * half * dx * dx
-                        s_b += d_power * dx * dy
-                        s_c += d_power * half * dy * dy
-                    for ch in range(channels):
-                        F = S[(7 + ch) * PLANE + row:]
-                        s_f = zero
-                        for l in range(TILE):
-                            s_f += V[l + 4 * PLANE] * F[l]
-                        G[g, GRAD_FEATURES + ch] += s_f
+                for l in range(n):
+                    px = V[l + CENTRE_X * PLANE]
+                    dx = px - mx
+                    dy = V[l + CENTRE_Y * PLANE] - my
+                    power = half * (a * dx * dx + c * dy * dy) + b * dx * dy
+                    e = exp_neg(power)
+                    raw = o * e
+                    alpha = min(max_alpha, raw)
+                    act = ((px >= left) & (px <= right) & (entry < V[l + B_COUNT * PLANE]) & (power >= zero)
+                           & (alpha >= min_alpha))
+                    t_after = V[l + B_T * PLANE]
+                    inv = one / (one - alpha)
+                    t_before = t_after * inv
+                    w = alpha * t_before if act else zero
+                    gv = V[l + B_GV * PLANE]
+                    d_alpha = t_before * gv - V[l + B_SUFFIX * PLANE] * inv
+                    V[l + B_SUFFIX * PLANE] += w * gv
+                    V[l + B_T * PLANE] = t_before if act else t_after
+                    V[l + B_WEIGHT * PLANE] = w
+                    s_z += w * V[l + B_GDEPTH * PLANE]
+                    d_alpha = d_alpha if act & (raw <= max_alpha) else zero  # capped: no gradient
+                    s_o += d_alpha * (e if act else zero)
+                    d_power = -d_alpha * alpha
+                    s_mx -= d_power * (a * dx + b * dy)
+                    s_my -= d_power * (b * dx + c * dy)
+                    s_a += d_power * half * dx * dx
+                    s_b += d_power * dx * dy
+                    s_c += d_power * half * dy * dy
+                for ch in range(channels):
+                    F = S[(B_GFEATURES + ch) * PLANE + lo:]
+                    s_f = zero
+                    for l in range(n):
+                        s_f += V[l + B_WEIGHT * PLANE] * F[l]
+                    G[g, GRAD_FEATURES + ch] += s_f
                 G[g, GRAD_MEANS2D] += s_mx
                 G[g, GRAD_MEANS2D + 1] += s_my
                 G[g, GRAD_CONIC] += s_a
