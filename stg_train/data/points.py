@@ -20,7 +20,7 @@ from typing import Callable
 
 import numpy as np
 
-from .bounds import bounds_from_points, describe
+from .bounds import MIN_VISIBLE, bounds_from_points, describe
 from .coverage import coverage_masks, coverage_radius
 from .dataset import DataError
 from .sfm import MIN_SFM_POINTS, sfm_points
@@ -127,14 +127,14 @@ def initial_points(dataset, method: str | None, num_points: int, rng: np.random.
         xyz, rgb, t_center = _subset(rng, num_points, xyz, rgb, t_center)
         return InitialPoints(xyz, rgb, t_center, "sfm", sfm_points=len(xyz), bounds=bounds, bounds_source=source)
     if bounds is None:
+        found = (f"structure-from-motion found only {len(xyz)} points" if not enough else
+                 f"fewer than {MIN_VISIBLE} of the {len(xyz)} SfM points lie in any camera's view")
         if method == "volume":
             raise DataError(f"{where}: the view-volume initialisation needs near/far depth bounds: the layout has "
-                            f"none, and structure-from-motion found only {len(xyz)} points to derive them from; "
-                            "give them with --near and --far")
-        raise DataError(f"{where}: structure-from-motion found only {len(xyz)} points (fewer than {min_points}), "
-                        "and there are no near/far depth bounds for the view-volume sampler; give them with "
-                        "--near and --far, or check that the images are textured and overlap and that the poses "
-                        "are right")
+                            f"none, and {found} to derive them from; give them with --near and --far")
+        raise DataError(f"{where}: {found} (the initialisation needs {min_points}), and there are no near/far "
+                        "depth bounds for the view-volume sampler; give them with --near and --far, or check "
+                        "that the images are textured and overlap and that the poses are right")
     if method in ("sfm", "combined") and not enough:
         warnings.warn(f"{where}: structure-from-motion found only {len(xyz)} points (fewer than {min_points}); "
                       "initialising from the view volume instead", stacklevel=2)
