@@ -93,9 +93,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "sampled in the cameras' common view volume at photo-consistent depths between the "
                         "near/far depth bounds; combined = the SfM points plus volume samples where they leave "
                         "the training images uncovered; sfm and combined fall back to volume with a warning when "
-                        "SfM finds too few points; auto = volume where the layout stores near/far bounds (N3V, "
-                        "the demo), else combined (default auto). Bounds: --near/--far, else the layout's, else "
-                        "the COLMAP model's points, else the SfM points")
+                        "SfM finds too few points; auto = volume (default). Bounds: --near/--far, else the layout's "
+                        "(N3V), else the COLMAP model's points, else the SfM points (SfM then runs for them)")
     p.add_argument("--init-every", type=positive_int, default=1, metavar="N",
                    help="run SfM on every N-th frame (default %(default)s: every frame, as the paper)")
     p.add_argument("--seed", type=int, default=d.seed, help="random seed (default %(default)s)")

@@ -6,8 +6,8 @@
     combined  the SfM points (at most --points x the fraction of the training cameras' pixels they
               cover, stg_train.data.coverage), and the rest of --points as view-volume samples drawn
               from the pixels that the projected SfM points leave uncovered;
-    auto      default_method: volume where the layout stores near/far bounds (N3V, the demo), else
-              combined.
+    auto      default_method: volume, with the bounds from wherever they come (below); SfM runs only
+              when the dataset has none.
 
 Layouts without stored bounds get them from the COLMAP model's points, from --near/--far, or else from
 the SfM points (stg_train.data.bounds). docs/training.md compares the initialisations.
@@ -78,9 +78,9 @@ class InitialPoints:
 
 
 def default_method(dataset) -> str:
-    """--init auto: "volume" when the layout stores near/far depth bounds (N3V, the demo), else "combined"
-    (docs/training.md compares them)."""
-    return "volume" if dataset.bounds is not None and dataset.bounds_source == "layout" else "combined"
+    """--init auto: "volume" for every dataset; a layout without near/far bounds gets them from the SfM
+    points (docs/training.md compares the initialisations on one scene in two layouts)."""
+    return "volume"
 
 
 def resolve_method(dataset, method: str | None) -> str:

@@ -81,14 +81,14 @@ def test_rig_bounds_from_the_colmap_points_or_the_user(tmp_path):
     rec = reconstruction_from_cameras(cams)
     write_reconstruction(rec, root / "sparse" / "0")
     plain = load_dataset(root, cache_dir=tmp_path / "cache", show_progress=False)
-    assert plain.bounds is None and default_method(plain) == "combined"
+    assert plain.bounds is None and default_method(plain) == "volume"
 
     xyz = points_in_view(cams[0], 500, 2.0, 6.0, np.random.default_rng(2))
     for p in xyz:
         rec.add_point3D(p, pycolmap.Track(), np.array([200, 100, 50], np.uint8))
     write_reconstruction(rec, root / "sparse" / "0")
     data = load_dataset(root, cache_dir=tmp_path / "cache", show_progress=False)
-    assert data.bounds_source == "colmap" and default_method(data) == "combined"
+    assert data.bounds_source == "colmap"
     np.testing.assert_allclose(data.bounds, bounds_from_points(data.cameras, xyz))
 
     user = load_dataset(root, cache_dir=tmp_path / "cache", depth_range=(0.5, 20.0), show_progress=False)
@@ -125,7 +125,7 @@ def test_combined_fills_the_holes_of_the_sfm_points(monkeypatch):
     ds = fake_dataset()
     sfm = _left_half_sfm(ds)
     monkeypatch.setattr(points_module, "sfm_points", lambda *a, **k: sfm)
-    init = initial_points(ds, "auto", 8000, np.random.default_rng(0))
+    init = initial_points(ds, "combined", 8000, np.random.default_rng(0))
     assert init.method == "combined" and init.bounds_source == "sfm"
     train = [ds.cameras[i] for i in ds.train_cameras]
     covered = coverage_masks(train, sfm[0])
@@ -174,8 +174,8 @@ def test_trainer_records_the_sfm_bounds_and_resume_restores_them(monkeypatch, tm
     sfm = _left_half_sfm(ds)
     monkeypatch.setattr(points_module, "sfm_points", lambda *a, **k: sfm)
     trainer = Trainer(ds, TrainConfig(iterations=1, num_points=800, model="lite", depth_candidates=0), tmp_path)
-    assert trainer.config.init == "combined" and ds.bounds is None  # the caller's dataset is left as it was
-    assert trainer.dataset.bounds_source == "sfm"
+    assert trainer.config.init == "volume" and ds.bounds is None  # the caller's dataset is left as it was
+    assert trainer.dataset.bounds_source == "sfm" and trainer.initial.volume_points == 800
     np.testing.assert_array_equal(trainer.dataset.bounds, trainer.initial.bounds)
     trainer.train(progress=False)
     resumed = Trainer.resume(ds, tmp_path / "checkpoint.pt")

@@ -158,7 +158,7 @@ def test_cli_init_options(dataset):
     args = build_train_parser().parse_args(["data", "--out", "o"])
     assert (args.init, args.init_every) == ("auto", 1)
     assert default_init(dataset) == "volume"  # N3V has near/far bounds
-    assert default_init(fake_dataset(num_frames=1, bounds=None)) == "combined"
+    assert default_init(fake_dataset(num_frames=1, bounds=None)) == "volume"  # bounds from the SfM points
     args = build_train_parser().parse_args(["data", "--init", "volume", "--init-every", "5"])
     assert (args.init, args.init_every) == ("volume", 5)
     with pytest.raises(SystemExit):
