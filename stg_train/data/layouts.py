@@ -64,7 +64,8 @@ def detect_layout(path) -> str:
 
 def load_dataset(path, layout: str = "auto", downscale: int = 1, *, cache_dir=None, num_frames: int | None = None,
                  fps: float | None = None, from_video: bool = False, test_camera: str | None = None,
-                 depth_range: tuple[float, float] | None = None, progress: Callable[[int, int], None] | None = None, show_progress: bool = False) -> Dataset:
+                 depth_range: tuple[float, float] | None = None, progress: Callable[[int, int], None] | None = None,
+                 show_progress: bool = False, lazy: bool = False) -> Dataset:
     """Read dataset folder `path` in `layout` ("auto": detect_layout) into a Dataset.
 
     downscale: integer factor dividing the frames' size and the intrinsics. cache_dir: where decoded
@@ -76,6 +77,8 @@ def load_dataset(path, layout: str = "auto", downscale: int = 1, *, cache_dir=No
     (Dataset.bounds_source "user"; ValueError unless 0 < near < far).
     progress: callable(done, total) while frames are decoded; show_progress: without `progress`, a
     progress bar on stderr while they are (nothing is drawn when the frame cache is already there).
+    lazy: decode no frame now; frames are decoded into the cache chunk by chunk on their first read
+    (stg_train.data.frames.ChunkedFrames, Dataset.chunked), with a bar per chunk when show_progress.
     """
     root = Path(path)
     if layout == "auto":
@@ -86,12 +89,15 @@ def load_dataset(path, layout: str = "auto", downscale: int = 1, *, cache_dir=No
         raise DataError(f"{root}: no such directory")
     if depth_range is not None:
         uniform_bounds(1, *depth_range)  # checked before any frame is decoded
-    options = dict(downscale=downscale, cache_dir=cache_dir, num_frames=num_frames, fps=fps, test_camera=test_camera)
+    options = dict(downscale=downscale, cache_dir=cache_dir, num_frames=num_frames, fps=fps, test_camera=test_camera,
+                   lazy=lazy)
     if layout == "n3v":
         options["prefer_png"] = not from_video
     elif layout == "rig":
         options["from_video"] = from_video
-    if progress is not None or not show_progress:
+    if lazy:
+        dataset = READERS[layout](root, **options).chunked(show_progress=show_progress)
+    elif progress is not None or not show_progress:
         dataset = READERS[layout](root, progress=progress, **options)
     else:
         with progress_callback("decode frames") as report:

@@ -65,7 +65,7 @@ def _frame_sources(root: Path, from_video: bool) -> dict[str, FrameSource]:
 
 
 def load_rig(path, downscale: int = 1, cache_dir=None, num_frames: int | None = None, fps: float | None = None,
-             progress=None, from_video: bool = False, test_camera: str | None = None) -> Dataset:
+             progress=None, from_video: bool = False, test_camera: str | None = None, lazy: bool = False) -> Dataset:
     """Read a rig-layout folder into a Dataset.
 
     from_video: read videos/ even when images/ exists (default: images/ when both exist). test_camera:
@@ -102,4 +102,4 @@ def load_rig(path, downscale: int = 1, cache_dir=None, num_frames: int | None = 
     bounds = model_bounds(rec, cameras)
     return build_dataset(root, "rig", cameras, [sources[n] for n in names], test_camera=test_camera,
                          downscale=downscale, cache_dir=cache_dir, num_frames=num_frames, fps=fps, progress=progress,
-                         bounds=bounds, bounds_source="colmap")
+                         lazy=lazy, bounds=bounds, bounds_source="colmap")
