@@ -2,7 +2,7 @@
 """One synthetic room in two layouts, trained from each initialisation: held-out and novel-view PSNR,
 Gaussian count and file size (docs/training.md, "Custom captures").
 
-    python bench/init_layouts.py --variants n3v-volume,rig-sfm,rig-combined [--iterations 500]
+    python bench/init_layouts.py --variants n3v-volume,rig-sfm,rig-combined,rig-volume [--iterations 500]
                                  [--data DIR] [--out DIR] [--splatter torch] [--init-every N]
 
 The scene (stg_train.synthetic, 12 cameras x 30 frames at 160x120 unless --cameras/--frames/--size) is
@@ -93,7 +93,7 @@ def novel_psnr(model: Path, scene: SyntheticScene, cams: dict[str, Camera], fram
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--variants", default="n3v-volume,rig-sfm,rig-combined")
+    ap.add_argument("--variants", default="n3v-volume,rig-sfm,rig-combined,rig-volume")
     ap.add_argument("--iterations", type=int, default=500)
     ap.add_argument("--points", type=int, default=None, help="initial points (default: TrainConfig's)")
     ap.add_argument("--init-every", type=int, default=1)
