@@ -59,13 +59,17 @@ def ensure_demo_scene(data, announce: bool = False, **sizes) -> Path:
 
 def new_trainer(dataset, config: TrainConfig, out: Path, quiet: bool = False) -> Trainer:
     """Trainer(dataset, config, out) with a progress bar while SfM computes the initial points; its
-    warnings (SfM found too few points) are printed as "stg-train: warning: ..." lines."""
+    warnings (SfM found too few points) are printed as "stg-train: warning: ..." lines, and the initial
+    points' split, coverage and depth bounds as "stg-train: ..." lines (unless quiet)."""
     with progress_callback("structure from motion", enabled=not quiet) as report:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             trainer = Trainer(dataset, config, out_dir=out, init_progress=report)
     for w in caught:
         print(f"stg-train: warning: {w.message}", file=sys.stderr)
+    if not quiet:
+        for line in trainer.initial.describe().splitlines():
+            print(f"stg-train: {line}", file=sys.stderr)
     return trainer
 
 
@@ -112,6 +116,8 @@ def train(dataset, out, config: TrainConfig, resume: bool = False, quiet: bool =
                "gaussians": trainer.params.count, "file_bytes": report.bytes,
                "export_check": None if report.diff is None else report.diff._asdict(),
                "settings": asdict(trainer.config)}
+    if trainer.initial is not None:
+        metrics["init"] = trainer.initial.summary()
     _write_metrics(out, metrics)
     return metrics
 

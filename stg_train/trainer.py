@@ -25,7 +25,7 @@ from stg_runtime.atomic import atomic_output, remove_leftovers
 from stg_runtime.camera import Camera
 from stg_runtime.progress import Progress
 
-from .data.points import default_method, initial_points
+from .data.points import initial_points, resolve_method
 from .losses import loss_fn
 from .metrics import psnr_of_mse
 from .params import LearningRates, STGParams, extent_of, position_lr, view_inputs
@@ -41,9 +41,10 @@ class TrainConfig:
 
     model: "full" (9 features + decoder) or "lite" (rgb); iterations: optimisation steps; batch: views
     per step (one shared time); num_points: initial Gaussians (the most SfM points kept); init: where the
-    initial points come from (None: stg_train.data.points.default_method of the dataset), "sfm" (stg_train.data.sfm on every init_every-th frame, falling back to the
-    view volume when SfM finds too few) or "volume" (stg_train.data.volume); depth_candidates:
-    photo-consistency depth search of the view-volume points (0: uniform depths; see
+    initial points come from, one of stg_train.data.points.METHODS: "auto" (or None: default_method of
+    the dataset), "sfm" (stg_train.data.sfm on every init_every-th frame), "volume"
+    (stg_train.data.volume) or "combined" (SfM points plus view-volume samples where they leave holes);
+    depth_candidates: photo-consistency depth search of the view-volume points (0: uniform depths; see
     stg_train.data.volume.sample_view_volume); static: freeze the time terms (ablation); lr_scale: multiplies every
     reference learning rate; schedule: Schedule field overrides (iterations of this run) on top of the
     reference schedule stretched to `iterations`; thresholds: Thresholds field overrides; seed: numpy /
@@ -60,7 +61,7 @@ class TrainConfig:
     batch: int = 2
     num_points: int = 20000
     depth_candidates: int = 64
-    init: str | None = None
+    init: str | None = "auto"
     init_every: int = 1
     static: bool = False
     lr_scale: float = 1.0
@@ -74,9 +75,10 @@ class TrainConfig:
     frozen: tuple = ()
 
     def for_dataset(self, dataset) -> "TrainConfig":
-        """These settings with the choices left open made: init None -> default_method(dataset), splatter
-        "auto" -> resolve_backend(splatter, device)."""
-        config = self if self.init is not None else replace(self, init=default_method(dataset))
+        """These settings with the choices left open made: init "auto" (or None) -> default_method(dataset),
+        splatter "auto" -> resolve_backend(splatter, device)."""
+        init = resolve_method(dataset, self.init)
+        config = self if init == self.init else replace(self, init=init)
         return config if config.splatter != "auto" else replace(config, splatter=resolve_backend("auto", config.device))
 
     @classmethod
@@ -91,7 +93,10 @@ class Trainer:
 
     out_dir: where checkpoint.pt goes (None: no checkpoints). Build a fresh run with Trainer(dataset,
     config, out_dir) or continue one with Trainer.resume(dataset, checkpoint_path). init_progress(done, total):
-    called per frame while SfM computes the initial points (config.init "sfm", not when cached).
+    called per frame while SfM computes the initial points (not when cached). initial: the
+    stg_train.data.points.InitialPoints of a fresh run (None when resumed). A dataset without near/far
+    bounds gets those the initialisation derived (self.dataset is then a view of it with them; a resumed
+    run takes them from the checkpoint), so guided sampling clips to them as on N3V.
     """
 
     def __init__(self, dataset, config: TrainConfig, out_dir=None, _state: dict | None = None,
@@ -111,14 +116,19 @@ class Trainer:
             random.seed(config.seed)
             torch.manual_seed(config.seed)
             self.rng = np.random.default_rng(config.seed)
-            xyz, rgb, t_center = initial_points(dataset, config.init, config.num_points, self.rng,
-                                                every=config.init_every, depth_candidates=config.depth_candidates,
-                                                progress=init_progress)
+            self.initial = initial_points(dataset, config.init, config.num_points, self.rng, every=config.init_every,
+                                          depth_candidates=config.depth_candidates, progress=init_progress)
+            xyz, rgb, t_center = self.initial.xyz, self.initial.rgb, self.initial.t_center
+            if dataset.bounds is None and self.initial.bounds is not None:
+                self.dataset = dataset.with_bounds(self.initial.bounds, self.initial.bounds_source)
             self.params = STGParams.from_points(xyz, rgb, t_center, config.model, config.static,
                                                 self.device, seed=config.seed, frozen=config.frozen)
             self.box = np.stack([xyz.min(0), xyz.max(0)])
             self.step = 0
         else:
+            self.initial = None
+            if dataset.bounds is None and _state.get("bounds") is not None:
+                self.dataset = dataset.with_bounds(np.asarray(_state["bounds"]), _state.get("bounds_source") or "sfm")
             self.params = STGParams.from_state_dict(_state["params"], self.device)
             self.box = np.asarray(_state["box"])
             self.step = int(_state["step"])
@@ -241,6 +251,8 @@ class Trainer:
                 "params": self.params.state_dict(), "optimizer": self.optimizer.state_dict(),
                 "strategies": [s.state_dict() for s in self.strategies], "box": self.box.tolist(),
                 "history": self.history, "seconds": self.seconds,
+                "bounds": None if self.dataset.bounds is None else self.dataset.bounds.tolist(),
+                "bounds_source": self.dataset.bounds_source,
                 "rng": {"numpy": self.rng.bit_generator.state, "torch": torch.get_rng_state(),
                         "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
                         "python": random.getstate()}}

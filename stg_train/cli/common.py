@@ -25,8 +25,9 @@ def error(prog: str, message: str) -> int:
     return 2
 
 
-def add_dataset_options(p: argparse.ArgumentParser) -> None:
-    """--layout, --fps, --test-camera, --downscale and --from-video: how DATA is read."""
+def add_dataset_options(p: argparse.ArgumentParser, depth_bounds: bool = False) -> None:
+    """--layout, --fps, --test-camera, --downscale and --from-video: how DATA is read; with depth_bounds
+    also --near and --far (check them with check_dataset_options)."""
     from ..data import LAYOUTS
 
     p.add_argument("--layout", choices=("auto",) + LAYOUTS, default="auto",
@@ -41,13 +42,34 @@ def add_dataset_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--from-video", action="store_true",
                    help="decode the videos even where lossless PNG frames exist (n3v: camXX.mp4 over "
                         "frames/camXX/*.png; rig: videos/ over images/)")
+    if depth_bounds:
+        p.add_argument("--near", type=positive_float, default=None, metavar="DEPTH",
+                       help="nearest depth of the scene from every camera, in world units (with --far): the "
+                            "bounds of the view-volume initialisation and of guided sampling, replacing the "
+                            "layout's (default: N3V's poses_bounds.npy, else from the COLMAP model's 3D points, "
+                            "else from the SfM points)")
+        p.add_argument("--far", type=positive_float, default=None, metavar="DEPTH",
+                       help="farthest depth of the scene from every camera, in world units (with --near)")
+
+
+def check_dataset_options(parser: argparse.ArgumentParser, args) -> None:
+    """parser.error (exit code 2) for --near without --far (or the other way round) or far <= near."""
+    near, far = getattr(args, "near", None), getattr(args, "far", None)
+    if (near is None) != (far is None):
+        parser.error(f"{'--near' if far is None else '--far'} needs {'--far' if far is None else '--near'}: give "
+                     "both depth bounds (world units)")
+    if near is not None and not far > near:
+        parser.error(f"--far {far:g} must be larger than --near {near:g}")
 
 
 def dataset_options(args) -> dict:
     """The keyword arguments of stg_train.data.load_dataset from add_dataset_options' arguments (and
     --quiet)."""
-    return dict(layout=args.layout, downscale=args.downscale, from_video=args.from_video, fps=args.fps,
-                test_camera=args.test_camera, show_progress=not args.quiet)
+    options = dict(layout=args.layout, downscale=args.downscale, from_video=args.from_video, fps=args.fps,
+                   test_camera=args.test_camera, show_progress=not args.quiet)
+    if getattr(args, "near", None) is not None:
+        options["depth_range"] = (args.near, args.far)
+    return options
 
 
 def format_table(figures: dict, file_bytes: int, gaussians: int | None = None) -> str:

@@ -16,7 +16,7 @@ from ..render import resolve_backend
 from ..threads import set_cpu_threads
 from ..segments import SegmentError, parse_segment_list
 from ..trainer import TrainConfig
-from .common import add_dataset_options, dataset_options, error, format_table, positive_int
+from .common import add_dataset_options, check_dataset_options, dataset_options, error, format_table, positive_int
 
 PROG = "stg-train"
 
@@ -108,17 +108,18 @@ def build_parser() -> argparse.ArgumentParser:
                    help="initial Gaussians: the most SfM points kept (a random subset beyond), or the number "
                         f"sampled in the cameras' common view volume (default {d.num_points}, the demo's "
                         f"{DEMO_TRAINING['num_points']} with --demo)")
-    p.add_argument("--init", choices=METHODS, default=None,
+    p.add_argument("--init", choices=METHODS, default="auto",
                    help="initial points: sfm = SIFT features matched and triangulated with the known poses "
-                        "(pycolmap, CPU) on every --init-every'th frame, cached in DATA/.stg_cache/sfm, falling "
-                        "back to volume with a warning when it finds too few points; volume = sampled in the "
-                        "cameras' common view volume at photo-consistent depths, needs the layout's near/far "
-                        "bounds (default: volume where the layout has near/far bounds, as N3V and the demo, "
-                        "else sfm)")
+                        "(pycolmap, CPU) on every --init-every'th frame, cached in DATA/.stg_cache/sfm; volume = "
+                        "sampled in the cameras' common view volume at photo-consistent depths between the "
+                        "near/far depth bounds; combined = the SfM points plus volume samples where they leave "
+                        "the training images uncovered; sfm and combined fall back to volume with a warning when "
+                        "SfM finds too few points; auto = volume (default). Bounds: --near/--far, else the layout's "
+                        "(N3V), else the COLMAP model's points, else the SfM points (SfM then runs for them)")
     p.add_argument("--init-every", type=positive_int, default=1, metavar="N",
                    help="run SfM on every N-th frame (default %(default)s: every frame, as the paper)")
     p.add_argument("--seed", type=int, default=d.seed, help="random seed (default %(default)s)")
-    add_dataset_options(p)
+    add_dataset_options(p, depth_bounds=True)
     p.add_argument("--threads", type=positive_int, default=None, metavar="N",
                    help="CPU threads for torch and the numba splatter (default: the cores; with --ray, the CPUs "
                         "and threads of each segment's task, default 1; with --gpus, each worker's threads)")
@@ -160,6 +161,7 @@ def main(argv=None) -> int:
         parser.error("give a DATA folder (or --demo)")
     if not args.demo and args.out is None:
         parser.error("--out DIR is required")
+    check_dataset_options(parser, args)
     if (args.ray is not None or args.gpus is not None) and args.demo:
         parser.error("--ray and --gpus train a DATA folder, not --demo")
     if args.gpus is not None and args.device != "cuda":

@@ -26,7 +26,9 @@ class Dataset:
     frames: (C, F, H, W, 3) uint8 RGB array-like, normally a read-only np.memmap of the cache file.
     fps: frames per second; frame k is shown at k / fps seconds (`frame_times`).
     test_cameras: indices of held-out cameras; `train_cameras` are the others.
-    bounds: (C, 2) float64 near and far depth per camera (world units) when the layout has them, else None.
+    bounds: (C, 2) float64 near and far depth per camera (world units) when known, else None.
+    bounds_source: where the bounds come from (stg_train.data.bounds.SOURCES: "layout", "colmap", "user",
+    "sfm"), None without bounds.
     scene_bounds: (min (3,), max (3,)) world box when the layout has one, else None.
     start_frame: index in the whole video of this dataset's frame 0 (non-zero for `frame_range` views).
     """
@@ -34,12 +36,14 @@ class Dataset:
     start_frame = 0
 
     def __init__(self, cameras: Sequence[Camera], frames, fps: float, test_cameras: Iterable[int] = (),
-                 bounds: np.ndarray | None = None, scene_bounds=None, path: str | os.PathLike | None = None):
+                 bounds: np.ndarray | None = None, scene_bounds=None, path: str | os.PathLike | None = None,
+                 bounds_source: str | None = None):
         self.cameras = list(cameras)
         self.frames = frames
         self.fps = float(fps)
         self.test_cameras = sorted(int(i) for i in test_cameras)
         self.bounds = None if bounds is None else np.asarray(bounds, dtype=np.float64)
+        self.bounds_source = None if bounds is None else (bounds_source or "layout")
         self.scene_bounds = scene_bounds
         self.path = None if path is None else Path(path)
         c, f, h, w, ch = frames.shape
@@ -50,6 +54,8 @@ class Dataset:
                 raise ValueError(f"camera {cam.name}: {cam.width}x{cam.height}, frames are {w}x{h}")
         if any(not 0 <= i < c for i in self.test_cameras):
             raise ValueError(f"test camera index out of range: {self.test_cameras}")
+        if self.bounds is not None and self.bounds.shape != (c, 2):
+            raise ValueError(f"bounds of shape {self.bounds.shape} do not match {c} cameras x (near, far)")
 
     # -- sizes and times ---------------------------------------------------------------------------
     @property
@@ -106,6 +112,16 @@ class Dataset:
         view = copy.copy(self)
         view.frames = self.frames[:, start:start + count]
         view.start_frame = self.start_frame + int(start)
+        return view
+
+    def with_bounds(self, bounds: np.ndarray, source: str) -> "Dataset":
+        """A view with near/far depth bounds (C, 2) from `source` (see bounds_source); the frames are
+        shared, this dataset is left as it is."""
+        bounds = np.asarray(bounds, dtype=np.float64)
+        if bounds.shape != (self.num_cameras, 2):
+            raise ValueError(f"bounds of shape {bounds.shape} do not match {self.num_cameras} cameras x (near, far)")
+        view = copy.copy(self)
+        view.bounds, view.bounds_source = bounds, source
         return view
 
     def chunked(self, spans=None, show_progress: bool | None = None) -> "Dataset":

@@ -338,7 +338,7 @@ def file_signature(paths: Iterable[Path]) -> list:
 def build_dataset(root: Path, layout: str, cameras: Sequence[Camera] | Callable[[int, int], Sequence[Camera]],
                   sources: Sequence[FrameSource], *, test_camera: str, downscale: int = 1, cache_dir=None,
                   num_frames: int | None = None, fps: float | None = None, default_fps: float = DEFAULT_FPS,
-                  bounds=None, progress=None, signature: dict | None = None,
+                  bounds=None, bounds_source: str = "layout", progress=None, signature: dict | None = None,
                   check: Callable[[], None] | None = None, lazy: bool = False) -> Dataset:
     """A Dataset from full-resolution cameras and their frame sources (same order), frames decoded into
     the frame cache <cache_dir or root/.stg_cache>/<layout>_<kind>_x<downscale>_f<num_frames>.
@@ -347,7 +347,8 @@ def build_dataset(root: Path, layout: str, cameras: Sequence[Camera] | Callable[
     whose calibration is relative to the image size). Checks that every camera has the same number of
     frames (or at least num_frames) and that frames and cameras have one size, raising DataError naming
     the file. fps: used when given, else the first video's, else default_fps. bounds: (C, 2) near and
-    far depth per camera, when the layout has them. signature: extra JSON-able cache key (e.g.
+    far depth per camera, when the layout has them; bounds_source: where they come from (Dataset.bounds_source).
+    signature: extra JSON-able cache key (e.g.
     calibration files). check: called before frames are decoded into a new cache (for costly
     consistency checks). progress(done, total): called per decoded frame. lazy: decode nothing now; the
     frames are a ChunkedFrames (one chunk, the whole video, until Dataset.chunked cuts it), `check` runs
@@ -395,7 +396,8 @@ def build_dataset(root: Path, layout: str, cameras: Sequence[Camera] | Callable[
         if check is not None:
             check()
         frames = ChunkedFrames(cache, key, shape, decoder)
-        return Dataset(scaled, frames, fps, test_cameras=[names.index(test_camera)], bounds=bounds, path=root)
+        return Dataset(scaled, frames, fps, test_cameras=[names.index(test_camera)], bounds=bounds, path=root,
+                       bounds_source=bounds_source)
 
     def fill(arr: np.ndarray) -> None:
         if check is not None:
@@ -403,4 +405,5 @@ def build_dataset(root: Path, layout: str, cameras: Sequence[Camera] | Callable[
         decoder.fill(arr, 0, progress)
 
     frames = build_frame_cache(cache, key, shape, fill)
-    return Dataset(scaled, frames, fps, test_cameras=[names.index(test_camera)], bounds=bounds, path=root)
+    return Dataset(scaled, frames, fps, test_cameras=[names.index(test_camera)], bounds=bounds, path=root,
+                   bounds_source=bounds_source)

@@ -19,6 +19,7 @@ from typing import Callable
 
 from stg_runtime.progress import progress_callback
 
+from .bounds import uniform_bounds
 from .dataset import DataError, Dataset
 from .n3v import load_n3v
 from .reference import load_reference
@@ -63,8 +64,8 @@ def detect_layout(path) -> str:
 
 def load_dataset(path, layout: str = "auto", downscale: int = 1, *, cache_dir=None, num_frames: int | None = None,
                  fps: float | None = None, from_video: bool = False, test_camera: str | None = None,
-                 progress: Callable[[int, int], None] | None = None, show_progress: bool = False,
-                 lazy: bool = False) -> Dataset:
+                 depth_range: tuple[float, float] | None = None, progress: Callable[[int, int], None] | None = None,
+                 show_progress: bool = False, lazy: bool = False) -> Dataset:
     """Read dataset folder `path` in `layout` ("auto": detect_layout) into a Dataset.
 
     downscale: integer factor dividing the frames' size and the intrinsics. cache_dir: where decoded
@@ -72,6 +73,8 @@ def load_dataset(path, layout: str = "auto", downscale: int = 1, *, cache_dir=No
     (default: the videos' where there are videos, else 30). from_video: read videos even when lossless
     frames exist (n3v, rig). test_camera: name of the held-out camera (default: cam00 for n3v and
     reference, cam10 for technicolor (else the first), the first camera in sorted order for rig).
+    depth_range: (near, far) depth bounds in world units for every camera, replacing the layout's
+    (Dataset.bounds_source "user"; ValueError unless 0 < near < far).
     progress: callable(done, total) while frames are decoded; show_progress: without `progress`, a
     progress bar on stderr while they are (nothing is drawn when the frame cache is already there).
     lazy: decode no frame now; frames are decoded into the cache chunk by chunk on their first read
@@ -84,6 +87,8 @@ def load_dataset(path, layout: str = "auto", downscale: int = 1, *, cache_dir=No
         raise ValueError(f"unknown layout {layout!r}; choose one of auto, {', '.join(LAYOUTS)}")
     if not root.is_dir():
         raise DataError(f"{root}: no such directory")
+    if depth_range is not None:
+        uniform_bounds(1, *depth_range)  # checked before any frame is decoded
     options = dict(downscale=downscale, cache_dir=cache_dir, num_frames=num_frames, fps=fps, test_camera=test_camera,
                    lazy=lazy)
     if layout == "n3v":
@@ -91,8 +96,12 @@ def load_dataset(path, layout: str = "auto", downscale: int = 1, *, cache_dir=No
     elif layout == "rig":
         options["from_video"] = from_video
     if lazy:
-        return READERS[layout](root, **options).chunked(show_progress=show_progress)
-    if progress is not None or not show_progress:
-        return READERS[layout](root, progress=progress, **options)
-    with progress_callback("decode frames") as report:
-        return READERS[layout](root, progress=report, **options)
+        dataset = READERS[layout](root, **options).chunked(show_progress=show_progress)
+    elif progress is not None or not show_progress:
+        dataset = READERS[layout](root, progress=progress, **options)
+    else:
+        with progress_callback("decode frames") as report:
+            dataset = READERS[layout](root, progress=report, **options)
+    if depth_range is not None:
+        dataset = dataset.with_bounds(uniform_bounds(dataset.num_cameras, *depth_range), "user")
+    return dataset

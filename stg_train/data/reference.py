@@ -7,7 +7,8 @@
 The cameras come from colmap_0's model (image "cam00.png" -> camera "cam00"); every other frame's model
 must hold the same images with the same calibration (the reference triangulates each frame with the
 poses held fixed). Frame i of a camera is colmap_<i>/images/<its image name>. The layout stores no
-frame rate: fps defaults to 30. cam00 is held out (the first camera when there is none).
+frame rate: fps defaults to 30. cam00 is held out (the first camera when there is none). Near and far
+depth bounds come from colmap_0's 3D points when it has them (stg_train.data.bounds).
 """
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .bounds import model_bounds
 from .colmap import cameras_from_reconstruction, read_reconstruction
 from .dataset import DataError, Dataset
 from .frames import FrameSource, build_dataset, file_signature, image_files
@@ -101,4 +103,4 @@ def load_reference(path, downscale: int = 1, cache_dir=None, num_frames: int | N
     signature = {"models": [[str(Path(p).relative_to(root)), s, t] for p, s, t in file_signature(model_files)]}
     return build_dataset(root, "reference", cameras, sources, test_camera=test_camera, downscale=downscale,
                          cache_dir=cache_dir, num_frames=None, fps=fps, progress=progress, signature=signature,
-                         check=check_models, lazy=lazy)
+                         check=check_models, lazy=lazy, bounds=model_bounds(rec0, cameras), bounds_source="colmap")

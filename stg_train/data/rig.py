@@ -8,12 +8,14 @@ The model holds one registered image per camera; the image's name says which cam
 "<camera>.png" (any extension) or "<camera>/<anything>" (e.g. "cam01/0000.png", the name COLMAP gives
 the first frame when it is run on images/). Cameras must be undistorted pinholes (see colmap.py) with
 the frames' size. Camera names are the folder (or video) names; cameras are ordered by name. The first
-camera in that order is held out unless test_camera names another. fps: the videos', else 30.
+camera in that order is held out unless test_camera names another. fps: the videos', else 30. Near and
+far depth bounds come from the model's 3D points when it has them (stg_train.data.bounds).
 """
 from __future__ import annotations
 
 from pathlib import Path, PurePosixPath
 
+from .bounds import model_bounds
 from .colmap import MODEL_FILES, cameras_from_reconstruction, read_reconstruction
 from .dataset import DataError, Dataset
 from .frames import VIDEO_EXTENSIONS, FrameSource, build_dataset, image_files
@@ -97,5 +99,7 @@ def load_rig(path, downscale: int = 1, cache_dir=None, num_frames: int | None = 
     cameras = [by_name[n][1] for n in names]
     if test_camera is None:
         test_camera = names[0]
+    bounds = model_bounds(rec, cameras)
     return build_dataset(root, "rig", cameras, [sources[n] for n in names], test_camera=test_camera,
-                         downscale=downscale, cache_dir=cache_dir, num_frames=num_frames, fps=fps, progress=progress, lazy=lazy)
+                         downscale=downscale, cache_dir=cache_dir, num_frames=num_frames, fps=fps, progress=progress,
+                         lazy=lazy, bounds=bounds, bounds_source="colmap")

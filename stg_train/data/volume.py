@@ -1,5 +1,7 @@
 """Initial points sampled in the training cameras' common view volume, at photo-consistent depths
-(numpy only): the initialisation of layouts with near/far depth bounds (N3V and the demo).
+(numpy only), between the cameras' near/far depth bounds (stg_train.data.bounds): the whole images
+(--init volume), or only the pixels that SfM points leave uncovered (--init combined,
+stg_train.data.points).
 """
 from __future__ import annotations
 
@@ -29,7 +31,7 @@ def _box3(image: np.ndarray) -> np.ndarray:
 
 
 def sample_view_volume(dataset, num_points: int, rng: np.random.Generator, min_views: float = 0.5,
-                       depth_candidates: int = 0):
+                       depth_candidates: int = 0, mask: np.ndarray | None = None):
     """Initial points sampled in the view volume of the training cameras (--init volume).
 
     Each point picks a training camera, a pixel and a depth in [near, far] of that camera
@@ -39,12 +41,25 @@ def sample_view_volume(dataset, num_points: int, rng: np.random.Generator, min_v
     when depth_candidates is 0; otherwise it is the most photo-consistent of `depth_candidates` depths
     (uniform in 1/depth, jittered): the one whose projections into the other training cameras' frame j
     have the colours closest to the source pixel's (a per-pixel plane sweep; 3x3-blurred frames).
+    mask: (T, H, W) bool over the T training cameras (dataset.train_cameras order): only its pixels
+    are drawn (a camera in proportion to its count of them); None: every pixel.
     Returns xyz (N, 3) float64, rgb (N, 3) float32 in [0, 1], t_center (N,) float32.
     """
     cams = [dataset.cameras[i] for i in dataset.train_cameras]
     if dataset.bounds is None:
         raise ValueError("sample_view_volume: the dataset has no near/far bounds")
     bounds = np.asarray(dataset.bounds, dtype=np.float64)[dataset.train_cameras]
+    pixels = weights = None
+    if mask is not None:
+        mask = np.asarray(mask, bool)
+        if mask.shape != (len(cams), dataset.height, dataset.width):
+            raise ValueError(f"sample_view_volume: mask of shape {mask.shape}, expected "
+                             f"{(len(cams), dataset.height, dataset.width)}")
+        pixels = [np.flatnonzero(m) for m in mask]
+        counts = np.array([len(p) for p in pixels], np.float64)
+        if counts.sum() == 0:
+            raise ValueError("sample_view_volume: the mask selects no pixel")
+        weights = counts / counts.sum()
     frames = np.arange(num_points) % dataset.num_frames
     rng.shuffle(frames)
     xyz = np.zeros((num_points, 3))
@@ -55,8 +70,15 @@ def sample_view_volume(dataset, num_points: int, rng: np.random.Generator, min_v
         if todo.size == 0:
             break
         k = todo.size
-        src[todo] = rng.integers(0, len(cams), k)
-        u[todo], v[todo] = rng.integers(0, dataset.width, k), rng.integers(0, dataset.height, k)
+        if pixels is None:
+            src[todo] = rng.integers(0, len(cams), k)
+            u[todo], v[todo] = rng.integers(0, dataset.width, k), rng.integers(0, dataset.height, k)
+        else:
+            src[todo] = rng.choice(len(cams), k, p=weights)
+            for c in np.unique(src[todo]):
+                m = todo[src[todo] == c]
+                flat = pixels[c][rng.integers(0, len(pixels[c]), len(m))]
+                v[m], u[m] = np.divmod(flat, dataset.width)
         depth = rng.uniform(bounds[src[todo], 0], bounds[src[todo], 1])
         for c in np.unique(src[todo]):
             m = todo[src[todo] == c]

@@ -122,13 +122,16 @@ def test_blank_scene_falls_back_to_the_view_volume():
     ds = fake_dataset(num_frames=2, value=128)  # untextured: no SIFT features, no points
     assert len(sfm.sfm_points(ds)[0]) == 0
     with pytest.warns(UserWarning, match="structure-from-motion found only 0 points"):
-        xyz, rgb, t_center = initial_points(ds, "sfm", 60, np.random.default_rng(3))
+        init = initial_points(ds, "sfm", 60, np.random.default_rng(3))
+    assert init.method == "volume" and init.volume_points == 60
     expected = sample_view_volume(ds, 60, np.random.default_rng(3))
-    for a, b in zip((xyz, rgb, t_center), expected):
+    for a, b in zip((init.xyz, init.rgb, init.t_center), expected):
         np.testing.assert_array_equal(a, b)
     ds.bounds = None  # a layout without near/far bounds: no fallback, a clear error
     with pytest.raises(DataError, match="found only 0 points.*no near/far depth bounds"):
         initial_points(ds, "sfm", 60, np.random.default_rng(3))
+    with pytest.raises(DataError, match="found only 0 points.*no near/far depth bounds"):
+        initial_points(ds, "combined", 60, np.random.default_rng(3))
     with pytest.raises(DataError, match="needs near/far depth bounds"):
         initial_points(ds, "volume", 60, np.random.default_rng(3))
 
@@ -153,9 +156,9 @@ def test_cli_init_options(dataset):
     from stg_train.data.points import default_method as default_init
 
     args = build_train_parser().parse_args(["data", "--out", "o"])
-    assert (args.init, args.init_every) == (None, 1)
+    assert (args.init, args.init_every) == ("auto", 1)
     assert default_init(dataset) == "volume"  # N3V has near/far bounds
-    assert default_init(fake_dataset(num_frames=1, bounds=None)) == "sfm"
+    assert default_init(fake_dataset(num_frames=1, bounds=None)) == "volume"  # bounds from the SfM points
     args = build_train_parser().parse_args(["data", "--init", "volume", "--init-every", "5"])
     assert (args.init, args.init_every) == ("volume", 5)
     with pytest.raises(SystemExit):
