@@ -31,6 +31,12 @@ def _rotation(qw, qx, qy, qz):
             2.0 * (qx * qz - qw * qy), 2.0 * (qy * qz + qw * qx), 1.0 - 2.0 * (qx * qx + qy * qy))
 
 
+@numba.njit(inline="always")
+def _rc(cam, r, row, col):
+    """(R Rq)[row, col]: the camera rotation R (cam[0:9]) times the Gaussian's rotation r (9 entries)."""
+    return cam[row * 3] * r[col] + cam[row * 3 + 1] * r[3 + col] + cam[row * 3 + 2] * r[6 + col]
+
+
 @numba.njit(cache=True)
 def _axes(cam, quats, scales, i):
     """(M as 9 row-major entries: the Gaussian's scaled axes in camera space, M = R Rq S; the unit
@@ -39,11 +45,10 @@ def _axes(cam, quats, scales, i):
     norm = max(math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz), 1e-30)
     qw, qx, qy, qz = qw / norm, qx / norm, qy / norm, qz / norm
     r = _rotation(qw, qx, qy, qz)
-    m = np.empty(9)
-    for row in range(3):
-        for col in range(3):
-            m[row * 3 + col] = (cam[row * 3] * r[col] + cam[row * 3 + 1] * r[3 + col]
-                                + cam[row * 3 + 2] * r[6 + col]) * np.float64(scales[i, col])
+    s0, s1, s2 = np.float64(scales[i, 0]), np.float64(scales[i, 1]), np.float64(scales[i, 2])
+    m = (_rc(cam, r, 0, 0) * s0, _rc(cam, r, 0, 1) * s1, _rc(cam, r, 0, 2) * s2,
+         _rc(cam, r, 1, 0) * s0, _rc(cam, r, 1, 1) * s1, _rc(cam, r, 1, 2) * s2,
+         _rc(cam, r, 2, 0) * s0, _rc(cam, r, 2, 1) * s1, _rc(cam, r, 2, 2) * s2)
     return m, (qw, qx, qy, qz), norm
 
 
@@ -112,10 +117,8 @@ def backward(means, quats, scales, cam, valid, g_means2d, g_conic, g_depth, g_me
         z = cam[6] * wx + cam[7] * wy + cam[8] * wz + cam[11]
         gu, gv = np.float64(g_means2d[i, 0]), np.float64(g_means2d[i, 1])
         gz = np.float64(g_depth[i])
-        for k in range(4):
-            g_quats[i, k] = 0.0
-        for k in range(3):
-            g_scales[i, k] = 0.0
+        g_quats[i, 0] = g_quats[i, 1] = g_quats[i, 2] = g_quats[i, 3] = 0.0
+        g_scales[i, 0] = g_scales[i, 1] = g_scales[i, 2] = 0.0
         if not z > NEAR:  # the 2D mean with z taken as 1
             gx, gy = gu * fx, gv * fy
         else:
@@ -127,6 +130,12 @@ def backward(means, quats, scales, cam, valid, g_means2d, g_conic, g_depth, g_me
             g_means[i, k] = cam[k] * gx + cam[3 + k] * gy + cam[6 + k] * gz
 
 
+@numba.njit(inline="always")
+def _rtg(cam, gm, row, col):
+    """(R^T G)[row, col] for the camera rotation R (cam[0:9]) and G (9 entries, row-major)."""
+    return cam[row] * gm[col] + cam[3 + row] * gm[3 + col] + cam[6 + row] * gm[6 + col]
+
+
 @numba.njit(cache=True)
 def _covariance_backward(cam, quats, scales, g_conic, i, x, y, z, gx, gy, gz, g_quats, g_scales):
     """Add the conic's gradient to (gx, gy, gz) (camera space) and write dL/d quats and dL/d scales of
@@ -134,10 +143,8 @@ def _covariance_backward(cam, quats, scales, g_conic, i, x, y, z, gx, gy, gz, g_
     fx, fy = cam[12], cam[13]
     m, q, norm = _axes(cam, quats, scales, i)
     j00, j02, j11, j12, xz, yz, x_free, y_free = _jacobian(cam, x, y, z)
-    t = np.empty(6)  # T = J M, rows t[0:3] and t[3:6]
-    for k in range(3):
-        t[k] = j00 * m[k] + j02 * m[6 + k]
-        t[3 + k] = j11 * m[3 + k] + j12 * m[6 + k]
+    t = (j00 * m[0] + j02 * m[6], j00 * m[1] + j02 * m[7], j00 * m[2] + j02 * m[8],  # T = J M, two rows
+         j11 * m[3] + j12 * m[6], j11 * m[4] + j12 * m[7], j11 * m[5] + j12 * m[8])
     a = t[0] * t[0] + t[1] * t[1] + t[2] * t[2] + BLUR
     b = t[0] * t[3] + t[1] * t[4] + t[2] * t[5]
     c = t[3] * t[3] + t[4] * t[4] + t[5] * t[5] + BLUR
@@ -147,20 +154,15 @@ def _covariance_backward(cam, quats, scales, g_conic, i, x, y, z, gx, gy, gz, g_
     ga = (-gA * c * c + gB * b * c - gC * b * b) / d2
     gb = (2.0 * gA * b * c - gB * (a * c + b * b) + 2.0 * gC * a * b) / d2
     gc = (-gA * b * b + gB * a * b - gC * a * a) / d2
-    gt = np.empty(6)  # cov = T T^T
-    for k in range(3):
-        gt[k] = 2.0 * ga * t[k] + gb * t[3 + k]
-        gt[3 + k] = gb * t[k] + 2.0 * gc * t[3 + k]
+    gt = (2.0 * ga * t[0] + gb * t[3], 2.0 * ga * t[1] + gb * t[4], 2.0 * ga * t[2] + gb * t[5],  # cov = T T^T
+          gb * t[0] + 2.0 * gc * t[3], gb * t[1] + 2.0 * gc * t[4], gb * t[2] + 2.0 * gc * t[5])
     # T = J M: dL/dJ = dL/dT M^T (its non-zero entries), dL/dM = J^T dL/dT.
     g00 = gt[0] * m[0] + gt[1] * m[1] + gt[2] * m[2]
     g02 = gt[0] * m[6] + gt[1] * m[7] + gt[2] * m[8]
     g11 = gt[3] * m[3] + gt[4] * m[4] + gt[5] * m[5]
     g12 = gt[3] * m[6] + gt[4] * m[7] + gt[5] * m[8]
-    gm = np.empty(9)
-    for k in range(3):
-        gm[k] = j00 * gt[k]
-        gm[3 + k] = j11 * gt[3 + k]
-        gm[6 + k] = j02 * gt[k] + j12 * gt[3 + k]
+    gm = (j00 * gt[0], j00 * gt[1], j00 * gt[2], j11 * gt[3], j11 * gt[4], j11 * gt[5],
+          j02 * gt[0] + j12 * gt[3], j02 * gt[1] + j12 * gt[4], j02 * gt[2] + j12 * gt[5])
     # J's entries in terms of x, y, z: j00 = fx / z, j02 = -fx xz / z (xz = x / z unless clamped).
     gz -= (g00 * fx + g11 * fy) / (z * z)
     if x_free:
@@ -176,13 +178,13 @@ def _covariance_backward(cam, quats, scales, g_conic, i, x, y, z, gx, gy, gz, g_
     # M = R Rq S: dL/d(Rq S) = R^T dL/dM, then split into Rq and S.
     qw, qx, qy, qz = q
     r = _rotation(qw, qx, qy, qz)
-    gr = np.empty(9)
-    for row in range(3):
-        for col in range(3):
-            g = cam[row] * gm[col] + cam[3 + row] * gm[3 + col] + cam[6 + row] * gm[6 + col]
-            s = np.float64(scales[i, col])
-            gr[row * 3 + col] = g * s
-            g_scales[i, col] += g * r[row * 3 + col]
+    s0, s1, s2 = np.float64(scales[i, 0]), np.float64(scales[i, 1]), np.float64(scales[i, 2])
+    gr = (_rtg(cam, gm, 0, 0) * s0, _rtg(cam, gm, 0, 1) * s1, _rtg(cam, gm, 0, 2) * s2,
+          _rtg(cam, gm, 1, 0) * s0, _rtg(cam, gm, 1, 1) * s1, _rtg(cam, gm, 1, 2) * s2,
+          _rtg(cam, gm, 2, 0) * s0, _rtg(cam, gm, 2, 1) * s1, _rtg(cam, gm, 2, 2) * s2)
+    for col in range(3):  # S's gradient: (R^T dL/dM)[:, col] . Rq[:, col]
+        g_scales[i, col] = (_rtg(cam, gm, 0, col) * r[col] + _rtg(cam, gm, 1, col) * r[3 + col]
+                            + _rtg(cam, gm, 2, col) * r[6 + col])
     gw = 2.0 * (-qz * gr[1] + qy * gr[2] + qz * gr[3] - qx * gr[5] - qy * gr[6] + qx * gr[7])
     gqx = 2.0 * (qy * gr[1] + qz * gr[2] + qy * gr[3] - 2.0 * qx * gr[4] - qw * gr[5] + qz * gr[6]
                  + qw * gr[7] - 2.0 * qx * gr[8])
