@@ -137,9 +137,12 @@ def test_cli_trains_and_evaluates(scene_dir, tmp_path, capsys):
     capsys.readouterr()
     assert eval_main([str(out / "model.stg"), str(scene_dir), "--json", str(tmp_path / "eval.json"), "--quiet"]) == 0
     printed = capsys.readouterr().out
-    assert "PSNR" in printed and "DSSIM2" in printed
+    assert "PSNR" in printed and "DSSIM2" in printed and "PSNR dynamic / static (dB)" in printed
     figures = json.loads((tmp_path / "eval.json").read_text())
     assert abs(figures["psnr"] - metrics["heldout"]["psnr"]) < 1e-6
+    for key in ("dynamic_psnr", "static_psnr", "dynamic_ssim", "static_ssim"):  # the scene moves: both regions
+        assert abs(figures[key] - metrics["heldout"][key]) < 1e-6
+    assert 0.05 < figures["dynamic_fraction"] < 0.6 and figures["dynamic_threshold"] == 0.1
     assert len(figures["per_frame"]) == SCENE["num_frames"]
 
 
