@@ -23,7 +23,7 @@ HELDOUT_KEYS = ("psnr", "ssim", "dssim1", "dssim2", "fps", "images", "cameras")
 REGION_KEYS = ("dynamic_psnr", "dynamic_ssim", "static_psnr", "static_ssim", "dynamic_fraction",
                "dynamic_threshold")
 #: dynamic_mask's default threshold: a change of more than 0.1 (25.5 of 255 levels) in some colour
-#: channel over the clip makes a pixel dynamic (docs/evaluation.md says why this value).
+#: channel over the clip makes a pixel dynamic (docs/dynamic.md says why this value).
 DYNAMIC_THRESHOLD = 0.1
 #: scikit-image's SSIM averages its local map over the pixels at least this far from the border (half
 #: of its 7x7 window).

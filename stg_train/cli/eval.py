@@ -25,7 +25,7 @@ line on stderr says why when it is left out), render FPS, model size.
 
 PSNR and SSIM are also given apart for the dynamic pixels (those whose ground truth changes over the
 evaluated frames by more than --dynamic-threshold in some colour channel: moving objects, what appears
-or vanishes, their shadows) and the static rest; docs/evaluation.md explains the measure."""
+or vanishes, their shadows) and the static rest; docs/dynamic.md explains the measure."""
 
 
 def build_parser() -> argparse.ArgumentParser:
