@@ -4,7 +4,7 @@ machine: seconds per iteration, training time to reach 25 / 30 dB held-out PSNR,
 Player on the held-out camera, every frame), Gaussian count and file size.
 
     python bench/train.py [--iterations N] [--eval-every K] [--threads 2] [--model full|lite]
-                          [--device cpu|cuda] [--splatter torch|gsplat] [--data DIR] [--out DIR]
+                          [--device cpu|cuda] [--splatter numba|torch|gsplat] [--data DIR] [--out DIR]
 
 On a GPU: `--device cuda` with the built-in torch splatter, or `--device cuda --splatter gsplat` with
 gsplat's kernels (the `[cuda]` extra).
@@ -42,7 +42,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--model", default="full", choices=["full", "lite"])
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
-    ap.add_argument("--splatter", default="torch", choices=["torch", "gsplat"])
+    ap.add_argument("--splatter", default="auto", choices=["auto", "numba", "torch", "gsplat"])
     ap.add_argument("--data", default=os.path.join(tempfile.gettempdir(), "stg-bench-scene"))
     ap.add_argument("--out", default=None, help="where model.stg and bench.json go (default: a temp folder)")
     args = ap.parse_args()
