@@ -103,7 +103,7 @@ class Trainer:
             remove_leftovers(self.out_dir, "checkpoint.pt")  # of a run killed while saving
         self.device = torch.device(config.device)
         self.extent = extent_of([dataset.cameras[i] for i in dataset.train_cameras])
-        self.lr = LearningRates().scaled(config.lr_scale)
+        self.lr = LearningRates().scaled(config.lr_scale).stretched(config.iterations)
         self.schedule = Schedule.scaled(config.iterations, **config.schedule)
         self.thresholds = Thresholds(**config.thresholds)
         self._rays: dict[int, Tensor] = {}

@@ -36,6 +36,23 @@ class Thresholds:
     # a step counts in a Gaussian's mean gradient only when its temporal opacity factor
     # exp(-(dt / s_t)^2) at the step's time is above this (0: every step it is on screen, the reference)
     min_temporal_opacity: float = 0.0
+    # with random_t_center: re-expand the new Gaussians' motion and rotation about their new temporal
+    # centre, so that they keep their parent's trajectory (False: xyz and the coefficients stay, which
+    # shifts the trajectory in time by the change of centre, as the reference does)
+    recentre: bool = False
+
+
+def recentred(raw: dict[str, Tensor], t_center: Tensor) -> dict[str, Tensor]:
+    """xyz, motion, rotation of Gaussians `raw` (stg_train.raw's names) expanded about new temporal
+    centres t_center (K, 1) so that position(t) and the unnormalised rotation(t) stay the same
+    functions of t: with d = new - old centre, the cubic x + a dt + b dt^2 + c dt^3 becomes
+    (x + a d + b d^2 + c d^3) + (a + 2 b d + 3 c d^2) dt' + (b + 3 c d) dt'^2 + c dt'^3, and q + omega dt
+    becomes (q + omega d) + omega dt'. (The time features, dt x f, cannot be re-expanded and stay.)"""
+    d = t_center - raw["t_center"]
+    a, b, c = raw["motion"][:, 0:3], raw["motion"][:, 3:6], raw["motion"][:, 6:9]
+    return {"xyz": raw["xyz"] + d * (a + d * (b + d * c)),
+            "motion": torch.cat([a + d * (2 * b + 3 * d * c), b + 3 * d * c, c], dim=1),
+            "rotation": raw["rotation"] + d * raw["omega"]}
 
 
 class DensityControl(Strategy):
@@ -175,7 +192,10 @@ class DensityControl(Strategy):
             new = {k: torch.cat([new[k], children[k]]) for k in raw}
         count_new = next(iter(new.values())).shape[0]
         if th.random_t_center and count_new:
-            new["t_center"] = torch.rand(count_new, 1).to(dev)
+            t_center = torch.rand(count_new, 1).to(dev)
+            if th.recentre:
+                new.update(recentred(new, t_center))
+            new["t_center"] = t_center
         append_gaussians(params, optimizer, new)
         self._fit(params.count)  # the new Gaussians have no statistics yet
         prune = self._prune_mask(params, step, big=True)

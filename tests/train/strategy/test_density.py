@@ -117,3 +117,21 @@ def test_gradient_statistics_count_only_gaussians_present_at_the_step_time():
         dc.step_post_backward(params, optimizer, 1, context)  # at tau 0.5: dt / s_t = 10, 0, 0.4, 10
         assert dc.grad_count.tolist() == counted
         np.testing.assert_allclose(dc.grad_sum.numpy(), 16 * np.array(counted), rtol=1e-6)  # 1 px = 16 NDC units
+
+
+def test_recentred_gaussians_keep_their_trajectory():
+    from stg_train.params import gaussians_at
+    from stg_train.strategy.density import recentred
+
+    params, _, _ = _setup(n=6)
+    gen = torch.Generator().manual_seed(1)
+    raw = {k: v.detach().clone() for k, v in params.raw.items()}
+    raw["motion"] = torch.randn(6, 9, generator=gen)
+    raw["omega"] = torch.randn(6, 4, generator=gen) * 0.3
+    new_t = torch.rand(6, 1, generator=gen)
+    moved = {**raw, **recentred(raw, new_t), "t_center": new_t}
+    for tau in (0.0, 0.3, 0.9):
+        before, after = gaussians_at(raw, tau), gaussians_at(moved, tau)
+        torch.testing.assert_close(after.means, before.means, atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(after.quats, before.quats, atol=1e-5, rtol=1e-5)
+    assert not torch.allclose(gaussians_at({**raw, "t_center": new_t}, 0.3).means, gaussians_at(raw, 0.3).means)
