@@ -165,6 +165,7 @@ def test_velocity_rates_stretch_to_the_run_length():
     assert {k: v for k, v in vars(short).items() if k not in ("motion_factor", "omega")} == \
         {k: v for k, v in vars(lr).items() if k not in ("motion_factor", "omega")}
     assert lr.stretched(30000) == lr and lr.stretched(60000) == lr  # never below the reference's
+    assert lr.stretched(10).omega == pytest.approx(50 * lr.omega)  # nor above 50 times them
     params = STGParams.from_points(np.zeros((4, 3)) + [0, 0, 4], np.full((4, 3), 0.5), np.zeros(4), "lite")
     groups = {g["name"]: g["lr"] for g in params.param_groups(short, 2.0)}
     assert groups["motion"] == pytest.approx(2.0 * lr.xyz_init * lr.motion_factor * 10)
