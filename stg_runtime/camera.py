@@ -209,4 +209,9 @@ def load_camera_path(path) -> list[Camera]:
 
 def save_camera_path(path, cameras: Sequence[Camera]) -> None:
     """Write `cameras` as a camera-path JSON file (see load_camera_path)."""
-    write_atomic(path, json.dumps([c.to_dict() for c in cameras], indent=1))
+    write_atomic(path, camera_path_json(cameras))
+
+
+def camera_path_json(cameras: Sequence[Camera]) -> str:
+    """The text of a camera-path JSON file of `cameras` (see load_camera_path)."""
+    return json.dumps([c.to_dict() for c in cameras], indent=1)

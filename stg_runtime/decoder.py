@@ -35,6 +35,10 @@ class OnnxDecoder:
         options = ort.SessionOptions()
         options.intra_op_num_threads = threads
         options.log_severity_level = 3
+        # onnxruntime's idle threads otherwise spin after every run, taking the cores from the numba
+        # splatter's next frame (docs/performance.md: "The decoder's idle threads")
+        options.add_session_config_entry("session.intra_op.allow_spinning", "0")
+        options.add_session_config_entry("session.inter_op.allow_spinning", "0")
         self.session = ort.InferenceSession(mlp.to_onnx(), options, providers=list(providers))
         self.input_name, self.input_channels = "x", mlp.input_width
         self.output_name = "y"

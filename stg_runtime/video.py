@@ -20,6 +20,11 @@ def to_uint8(image: np.ndarray) -> np.ndarray:
 
 def write_png(path, image: np.ndarray) -> None:
     """Write an (H, W, 3) uint8 RGB image as an 8-bit PNG (atomically: temp file + rename)."""
+    write_atomic(path, encode_png(image))
+
+
+def encode_png(image: np.ndarray) -> bytes:
+    """The bytes of an 8-bit PNG of an (H, W, 3) uint8 RGB image."""
     image = np.ascontiguousarray(image, dtype=np.uint8)
     h, w, c = image.shape
     if c != 3:
@@ -29,9 +34,8 @@ def write_png(path, image: np.ndarray) -> None:
     def chunk(kind: bytes, data: bytes) -> bytes:
         return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
 
-    png = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0))
-           + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b""))
-    write_atomic(path, png)
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0))
+            + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b""))
 
 
 class FrameWriter:

@@ -150,3 +150,13 @@ def export_trainer(trainer, path, check: bool = True) -> ExportReport:
     check_cameras = [ds.cameras[i] for i in ds.test_cameras] if check else None
     return export(trainer.params, path, ds.cameras, ds.fps, ds.num_frames, check_cameras=check_cameras,
                   bounds=ds.scene_bounds, provenance=prov, start_frame=getattr(ds, "start_frame", 0))
+
+
+def trainer_model(trainer) -> Model:
+    """The runtime Model of a Trainer's current parameters, in memory (no file, no check): its
+    dataset's cameras, fps, frame range and bounds, as export_trainer writes them. The trainer's
+    tensors are copied, never changed."""
+    ds = trainer.dataset
+    with torch.no_grad():
+        return to_model(trainer.params, ds.cameras, ds.fps, ds.num_frames, bounds=ds.scene_bounds,
+                        start_frame=getattr(ds, "start_frame", 0))

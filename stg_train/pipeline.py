@@ -3,6 +3,7 @@ OUT/metrics.json out.
 
     train(dataset, out, config, ...)                one run, or segment by segment for a long video
     train_segments(dataset, out, config, ...)       the segments of a plan (stg_train.segments), merged
+    prepare_segments, finish_segments               its two ends, shared with stg_train.distributed
     model_frames(player, dataset, name)             the dataset frames a model covers (for stg-eval)
     run_demo(out, config, ...)                      the demo: synthetic scene, training, orbit video
 
@@ -81,14 +82,16 @@ def _write_metrics(out: Path, metrics: dict) -> None:
 
 
 def train(dataset, out, config: TrainConfig, resume: bool = False, quiet: bool = False, check: bool = True,
-          segment_frames: int | None = None, segments: Sequence[int] | None = None, lpips: dict | None = None) -> dict:
+          segment_frames: int | None = None, segments: Sequence[int] | None = None, lpips: dict | None = None,
+          callback=None) -> dict:
     """Train (or resume) into `out`, export out/model.stg, evaluate it with the runtime and write
     out/metrics.json; returns the metrics. With segment_frames, a video of more frames (or any run
     naming `segments`, a list of indices) is trained segment by segment (train_segments). lpips: the
     LPIPS networks of the evaluation (default: metrics.lpips_models, when the lpips package works).
+    callback(trainer) runs after every training step (Trainer.train's; the training viewer's).
     Raises DataError and SegmentError naming the problem."""
     if segment_frames and (segments is not None or len(plan_segments(dataset.num_frames, segment_frames)) > 1):
-        return train_segments(dataset, out, config, segment_frames, segments, resume, quiet, check)
+        return train_segments(dataset, out, config, segment_frames, segments, resume, quiet, check, callback)
     lpips = _lpips(quiet) if lpips is None else lpips
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -102,7 +105,7 @@ def train(dataset, out, config: TrainConfig, resume: bool = False, quiet: bool =
         if resume and not quiet:
             print(f"no checkpoint in {out}: starting a new run", file=sys.stderr)
         trainer = new_trainer(dataset, config, out, quiet)
-    trainer.train(progress=not quiet)
+    trainer.train(progress=not quiet, callback=callback)
     report = export_trainer(trainer, out / "model.stg", check=check)
     result = evaluate_player(Player(report.path, device="cpu"), dataset, lpips=lpips)
     metrics = {"heldout": heldout(result), "iterations": trainer.step, "train_seconds": trainer.seconds,
@@ -114,7 +117,7 @@ def train(dataset, out, config: TrainConfig, resume: bool = False, quiet: bool =
 
 
 def train_segments(dataset, out, config: TrainConfig, segment_frames: int, indices: Sequence[int] | None = None,
-                   resume: bool = False, quiet: bool = False, check: bool = True) -> dict:
+                   resume: bool = False, quiet: bool = False, check: bool = True, callback=None) -> dict:
     """Train the segments `indices` (default: all) of `dataset` cut every segment_frames frames into
     OUT/segments/NN, then merge every segment into OUT/model.stg when all are finished, evaluate and
     write OUT/metrics.json; returns the metrics ("missing_segments" lists the indices still to train).
@@ -124,6 +127,23 @@ def train_segments(dataset, out, config: TrainConfig, segment_frames: int, indic
     cut differently, DataError for bad data (from the training runs).
     """
     out = Path(out)
+    dataset, plan, todo = prepare_segments(dataset, out, segment_frames, indices, resume, quiet)
+    lpips = _lpips(quiet)
+    for i in todo:
+        span, folder = plan[i], segment_dir(out, i, len(plan))
+        if not quiet:
+            print(f"segment {i} of 0-{len(plan) - 1} ({span.frames()}) -> {folder}", file=sys.stderr)
+        train(dataset.frame_range(span.start, span.count), folder, config, resume, quiet, check, lpips=lpips,
+              callback=callback)
+    return finish_segments(dataset, out, config, segment_frames, quiet, lpips)
+
+
+def prepare_segments(dataset, out: Path, segment_frames: int, indices: Sequence[int] | None, resume: bool,
+                     quiet: bool = False):
+    """The segments of a run before any is trained: (dataset with its frame cache cut at the segments,
+    plan, indices to train). Checks the indices, OUT (creating it) and OUT's plan (SegmentError), removes leftovers of
+    killed writes, and without `resume` the marks of finished segments of the chosen ones (so they
+    are trained afresh); with it, says which finished segments are kept."""
     plan = plan_segments(dataset.num_frames, segment_frames)
     chosen = list(range(len(plan))) if indices is None else sorted(set(indices))
     bad = [i for i in chosen if not 0 <= i < len(plan)]
@@ -131,13 +151,16 @@ def train_segments(dataset, out, config: TrainConfig, segment_frames: int, indic
         raise SegmentError(f"--segments {','.join(map(str, bad))}: the {dataset.num_frames}-frame video has "
                            f"{len(plan)} segment{'s' if len(plan) > 1 else ''} of {segment_frames} frames "
                            f"(indices 0-{len(plan) - 1})")
+    try:
+        (out / "segments").mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise SegmentError(f"{out}: cannot create the output folder ({e.strerror or e})") from None
     check_plan(out, plan, segment_frames)
-    lpips = _lpips(quiet)
     remove_leftovers(out)
     remove_leftovers(out / "segments")
-    folders = [segment_dir(out, s.index, len(plan)) for s in plan]
+    todo = []
     for i in chosen:
-        span, folder = plan[i], folders[i]
+        span, folder = plan[i], segment_dir(out, i, len(plan))
         if resume and finished(folder, span):
             if not quiet:
                 print(f"segment {i} ({span.frames()}): finished, keeping {folder / 'model.stg'}", file=sys.stderr)
@@ -145,10 +168,18 @@ def train_segments(dataset, out, config: TrainConfig, segment_frames: int, indic
         if not resume:
             for name in ("metrics.json", "model.stg"):  # the marks of a finished segment
                 (folder / name).unlink(missing_ok=True)
-        if not quiet:
-            print(f"segment {i} of 0-{len(plan) - 1} ({span.frames()}) -> {folder}", file=sys.stderr)
-        train(dataset.frame_range(span.start, span.count), folder, config, resume, quiet, check, lpips=lpips)
+        todo.append(i)
+    return dataset.chunked([(s.start, s.count) for s in plan]), plan, todo
 
+
+def finish_segments(dataset, out: Path, config: TrainConfig, segment_frames: int, quiet: bool = False,
+                    lpips: dict | None = None) -> dict:
+    """After the segments' runs: merge every segment into OUT/model.stg when all are finished (else
+    pool the finished ones' evaluations and say what is missing), evaluate, write OUT/metrics.json and
+    return the metrics (see train_segments)."""
+    lpips = _lpips(quiet) if lpips is None else lpips
+    plan = plan_segments(dataset.num_frames, segment_frames)
+    folders = [segment_dir(out, s.index, len(plan)) for s in plan]
     done = [s for s, f in zip(plan, folders) if finished(f, s)]
     missing = [s for s in plan if s not in done]
     per_segment, heldouts = [], []
@@ -196,14 +227,14 @@ def model_frames(player: Player, dataset, name) -> range:
 
 
 def run_demo(out, config: TrainConfig, resume: bool = False, quiet: bool = False, check: bool = True,
-             segment_frames: int | None = None, segments: Sequence[int] | None = None) -> dict:
+             segment_frames: int | None = None, segments: Sequence[int] | None = None, callback=None) -> dict:
     """The demo: the synthetic scene written into OUT/data (once), trained with `config`, and a
     novel-view video OUT/orbit.mp4 along an orbit around the training cameras; returns the metrics (no
     video while segments are missing)."""
     out = Path(out)
     data = ensure_demo_scene(out / "data", announce=not quiet)
-    dataset = load_dataset(data, show_progress=not quiet)
-    metrics = train(dataset, out, config, resume, quiet, check, segment_frames, segments)
+    dataset = load_dataset(data, show_progress=not quiet, lazy=True)
+    metrics = train(dataset, out, config, resume, quiet, check, segment_frames, segments, callback=callback)
     if metrics.get("missing_segments"):
         return metrics  # OUT/model.stg waits for the other segments (train_segments said which)
     player = Player(out / "model.stg", device="cpu")

@@ -3,8 +3,9 @@
 - no import cycle between project modules, imports inside functions included;
 - stg_runtime never imports torch, onnx or stg_train;
 - optional backends stay in their own module: gsplat only in stg_train.render.gsplat_backend, CuPy only
-  in stg_runtime.cuda.device;
-- Player(device="cpu") renders without importing numba.cuda, torch or onnx.
+  in stg_runtime.cuda.device, Ray only in stg_train.distributed.ray_cluster, viser only in
+  stg_runtime.viewer.server;
+- Player(device="cpu") renders without importing numba.cuda, torch, onnx or the viewer (viser).
 """
 from __future__ import annotations
 
@@ -111,6 +112,8 @@ def test_runtime_never_imports_torch_onnx_or_the_trainer():
 def test_optional_backends_stay_in_their_modules():
     assert _offenders({"gsplat"}, lambda m: m != "stg_train.render.gsplat_backend") == []
     assert _offenders({"cupy"}, lambda m: m != "stg_runtime.cuda.device") == []
+    assert _offenders({"ray"}, lambda m: m != "stg_train.distributed.ray_cluster") == []
+    assert _offenders({"viser"}, lambda m: m != "stg_runtime.viewer.server") == []
 
 
 CPU_PLAYER = r"""
@@ -120,7 +123,8 @@ from stg_runtime.demo import demo_model
 player = Player(demo_model("full", num_frames=4), device="cpu")
 image = player.render(player.cameras[0].resized(32, 24), t=0.05)
 assert image.shape == (24, 32, 3) and image.max() > 0
-print(sorted(m for m in ("numba.cuda", "torch", "onnx", "stg_train") if m in sys.modules))
+print(sorted(m for m in ("numba.cuda", "torch", "onnx", "stg_train", "viser", "stg_runtime.viewer")
+             if m in sys.modules))
 """
 
 

@@ -9,9 +9,11 @@ from pathlib import Path
 from stg_runtime.player import RenderError
 
 from ..data import DataError, load_dataset
+from ..distributed import DistributedError
 from ..data.points import METHODS
 from ..pipeline import DEMO_SCENE, DEMO_TRAINING, run_demo, train
 from ..render import resolve_backend
+from ..threads import set_cpu_threads
 from ..segments import SegmentError, parse_segment_list
 from ..trainer import TrainConfig
 from .common import add_dataset_options, dataset_options, error, format_table, positive_int
@@ -23,6 +25,8 @@ EPILOG = """examples:
   stg-train scenes/coffee --out runs/coffee --iterations 30000 --device cuda
   stg-train scenes/coffee --out runs/coffee --resume      continue from runs/coffee/checkpoint.pt
   stg-train scenes/long --out runs/long --segments 0-2    first three 50-frame segments (others elsewhere)
+  stg-train /shared/long --out /shared/runs/long --ray --device cuda   every segment as a task on a Ray cluster
+  stg-train scenes/long --out runs/long --gpus auto --device cuda      segments in parallel on this machine's GPUs
 
 DATA is a dataset folder in one of these layouts (detected, or forced with --layout):
   n3v          Neural 3D Video: camXX.mp4 per camera + poses_bounds.npy (LLFF), optionally
@@ -44,6 +48,12 @@ def _segment_list(text: str) -> list[int]:
         return parse_segment_list(text)
     except ValueError as e:
         raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def _port(text: str) -> int:
+    if not text.isdigit() or int(text) > 65535:
+        raise argparse.ArgumentTypeError(f"a port is a number 0..65535, got {text!r}")
+    return int(text)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -79,6 +89,17 @@ def build_parser() -> argparse.ArgumentParser:
                         "the others elsewhere, copy their OUT/segments/NN folders into OUT/segments, and "
                         "--resume (or stg-convert merge) writes OUT/model.stg; with --resume, finished "
                         "segments are kept and an unfinished one continues from its checkpoint")
+    parallel = p.add_mutually_exclusive_group()
+    parallel.add_argument("--ray", nargs="?", const="auto", default=None, metavar="ADDRESS",
+                          help="train the segments in parallel as tasks on a Ray cluster: ADDRESS (host:port or "
+                               "ray://host:port), or auto (the default when the flag has no value: RAY_ADDRESS, "
+                               "else a cluster started here with `ray start`, else a new local Ray); one GPU per "
+                               "segment with --device cuda, else --threads CPUs (default 1). DATA and OUT must be "
+                               "on storage every node sees (checked). Needs pip install -e \".[distributed]\"; "
+                               "see docs/distributed.md")
+    parallel.add_argument("--gpus", default=None, metavar="auto|LIST",
+                          help="train the segments in parallel on the GPUs of this machine, one worker process "
+                               "per GPU: auto (every GPU) or indices such as 0,1 (needs --device cuda)")
     p.add_argument("--checkpoint-every", type=positive_int, default=d.checkpoint_every, metavar="N",
                    help="write OUT/checkpoint.pt (atomically) every N steps and at the end (default %(default)s)")
     p.add_argument("--batch", type=positive_int, default=d.batch, metavar="B",
@@ -99,12 +120,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=d.seed, help="random seed (default %(default)s)")
     add_dataset_options(p)
     p.add_argument("--threads", type=positive_int, default=None, metavar="N",
-                   help="CPU threads for torch (default: torch's choice)")
+                   help="CPU threads for torch and the numba splatter (default: the cores; with --ray, the CPUs "
+                        "and threads of each segment's task, default 1; with --gpus, each worker's threads)")
     p.add_argument("--no-check", action="store_true",
                    help="skip comparing the runtime's render of the exported file with the trainer's")
     p.add_argument("--no-guided", action="store_true",
                    help="no guided sampling (new Gaussians along the rays of high-error patches, the paper's "
                         "Sec. 4.4; on by default)")
+    p.add_argument("--viewer", nargs="?", type=_port, const=8080, default=None, metavar="PORT",
+                   help="show the model in the browser while it trains, at http://127.0.0.1:PORT (default "
+                        "8080; needs the viewer extra): the current parameters every few seconds, and the "
+                        "step, loss, PSNR and Gaussians (docs/viewer.md)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--demo", action="store_true",
                    help=f"generate the synthetic scene ({DEMO_SCENE['cameras']} cameras x {DEMO_SCENE['frames']} "
@@ -134,29 +160,50 @@ def main(argv=None) -> int:
         parser.error("give a DATA folder (or --demo)")
     if not args.demo and args.out is None:
         parser.error("--out DIR is required")
+    if (args.ray is not None or args.gpus is not None) and args.demo:
+        parser.error("--ray and --gpus train a DATA folder, not --demo")
+    if args.gpus is not None and args.device != "cuda":
+        return error(PROG, "--gpus trains on GPUs: add --device cuda (or use --ray for CPU workers)")
     try:
         splatter = resolve_backend(args.splatter, args.device)
     except ValueError as e:
         return error(PROG, str(e))
     import torch
 
-    if args.device == "cuda" and not torch.cuda.is_available():
+    if args.device == "cuda" and args.ray is None and not torch.cuda.is_available():
         return error(PROG, "--device cuda: torch sees no CUDA device")
     if args.threads:
-        torch.set_num_threads(args.threads)
+        set_cpu_threads(args.threads)
     config = _config(args, splatter)
     options = dict(resume=args.resume, quiet=args.quiet, check=not args.no_check,
                    segment_frames=args.segment_frames, segments=args.segments)
+    if args.viewer is not None:
+        try:
+            from ..viewer import TrainingViewer
+            options["callback"] = TrainingViewer(args.viewer, quiet=args.quiet)
+        except ImportError as e:
+            return error(PROG, f"--viewer needs the viewer extra (python -m pip install -e \".[viewer]\"): {e}")
+        except OSError as e:  # the port is taken
+            return error(PROG, f"--viewer: {e}")
     start = time.perf_counter()
     try:
         if args.demo:
             out = Path(args.out or "stg-demo")
             metrics = run_demo(out, config, **options)
         else:
-            dataset = load_dataset(args.data, **dataset_options(args))
-            metrics = train(dataset, Path(args.out), config, **options)
-    except (DataError, SegmentError, RenderError) as e:
+            dataset = load_dataset(args.data, lazy=True, **dataset_options(args))
+            if args.ray is not None or args.gpus is not None:
+                from ..distributed.run import train_parallel
+
+                metrics = train_parallel(dataset, Path(args.out), config, ray=args.ray, gpus=args.gpus,
+                                         threads=args.threads, **options)
+            else:
+                metrics = train(dataset, Path(args.out), config, **options)
+    except (DataError, SegmentError, RenderError, DistributedError) as e:
         return error(PROG, str(e))
+    finally:
+        if options.get("callback") is not None:
+            options["callback"].close()
     if metrics.get("missing_segments"):
         return 0  # OUT/model.stg waits for the other segments (the pipeline said which)
     print(format_table(metrics["heldout"], metrics["file_bytes"], metrics["gaussians"]))

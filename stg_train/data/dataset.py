@@ -108,6 +108,19 @@ class Dataset:
         view.start_frame = self.start_frame + int(start)
         return view
 
+    def chunked(self, spans=None, show_progress: bool | None = None) -> "Dataset":
+        """This dataset with its lazily decoded frames (load_dataset(lazy=True)) cut into frame-cache
+        chunks at `spans` ((start, count) pairs covering every frame in order, e.g. the segments of
+        stg_train.segments.plan_segments), so that a segment's frame_range view decodes only its own
+        frames; show_progress switches the chunks' decoding bars on or off. A dataset whose frames are
+        an array is returned as it is."""
+        if not hasattr(self.frames, "with_options"):
+            return self
+        view = copy.copy(self)
+        view.frames = self.frames.with_options(None if spans is None else [tuple(s)[-2:] for s in spans],
+                                               show_progress)
+        return view
+
     def __repr__(self) -> str:
         return (f"Dataset({self.path or '<memory>'}: {self.num_cameras} cameras x {self.num_frames} frames, "
                 f"{self.width}x{self.height}, {self.fps:g} fps, test cameras {self.test_cameras})")

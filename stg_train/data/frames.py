@@ -4,6 +4,11 @@ probing, and build_dataset, which every layout reader ends with.
 Frames are decoded once into a cache file, `frames_uint8.npy`, a uint8 numpy array of shape
 (cameras, frames, H, W, 3) (RGB) under <dataset>/.stg_cache/, rebuilt only when the source files or
 options change, and read lazily from it as a memory map.
+
+With `lazy=True` nothing is decoded when the dataset is loaded: its frames are a ChunkedFrames, cut
+into chunks of frames (the whole video, or the segments of a long video: Dataset.chunked), each decoded
+into its own cache file on its first read. A segment's training run then reads and decodes only its own
+frames, and runs of different segments (on several GPUs or machines) never write the same file.
 """
 from __future__ import annotations
 
@@ -91,18 +96,23 @@ def probe_video(path: Path) -> tuple[int, int, int, float]:
         cap.release()
 
 
-def video_frames(path: Path, num_frames: int):
-    """The first num_frames frames of a video as (H, W, 3) uint8 RGB; DataError if it has fewer."""
+def video_frames(path: Path, num_frames: int, start: int = 0):
+    """Frames start .. start + num_frames - 1 of a video as (H, W, 3) uint8 RGB; DataError if it has
+    fewer. The frames before `start` are grabbed in order (not seeked), so frame k is the same frame
+    whichever range it is decoded in."""
     import cv2
 
     cap = cv2.VideoCapture(str(path))
     if not cap.isOpened():
         raise DataError(f"{path}: cannot be opened as a video")
     try:
+        for k in range(start):
+            if not cap.grab():
+                raise DataError(f"{path}: decoded only {k} of {start + num_frames} frames")
         for k in range(num_frames):
             ok, bgr = cap.read()
             if not ok or bgr is None:
-                raise DataError(f"{path}: decoded only {k} of {num_frames} frames")
+                raise DataError(f"{path}: decoded only {start + k} of {start + num_frames} frames")
             yield np.ascontiguousarray(bgr[..., ::-1])
     finally:
         cap.release()
@@ -124,14 +134,40 @@ def resize(rgb: np.ndarray, width: int, height: int) -> np.ndarray:
     return cv2.resize(rgb, (width, height), interpolation=cv2.INTER_AREA)
 
 
-def _decode(source: FrameSource, num_frames: int):
-    """(label, frame) pairs of the first num_frames frames."""
+def _decode(source: FrameSource, num_frames: int, start: int = 0):
+    """(label, frame) pairs of frames start .. start + num_frames - 1."""
     if source.video is not None:
-        for k, rgb in enumerate(video_frames(source.video, num_frames)):
-            yield f"{source.video} frame {k}", rgb
+        for k, rgb in enumerate(video_frames(source.video, num_frames, start)):
+            yield f"{source.video} frame {start + k}", rgb
     else:
-        for f in source.images[:num_frames]:
+        for f in source.images[start:start + num_frames]:
             yield str(f), read_image(f)
+
+
+@dataclass
+class FrameDecoder:
+    """Decodes frame ranges of every camera's source into an array: the frame cache's filler.
+
+    sources: one FrameSource per camera; size: the sources' (width, height); out_size: the cached
+    (width, height) (size // downscale, INTER_AREA)."""
+
+    sources: list
+    size: tuple
+    out_size: tuple
+
+    def fill(self, arr: np.ndarray, start: int = 0, progress=None) -> None:
+        """Write frames start .. start + F - 1 of every camera into arr (C, F, H', W', 3) uint8.
+        progress(done, total): called per decoded frame. Raises DataError naming a frame of another size."""
+        (width, height), (out_w, out_h) = self.size, self.out_size
+        total, done = arr.shape[0] * arr.shape[1], 0
+        for ci, src in enumerate(self.sources):
+            for k, (label, rgb) in enumerate(_decode(src, arr.shape[1], start)):
+                if rgb.shape[:2] != (height, width):
+                    raise DataError(f"{label}: is {rgb.shape[1]}x{rgb.shape[0]}, expected {width}x{height}")
+                arr[ci, k] = resize(rgb, out_w, out_h) if (out_w, out_h) != (width, height) else rgb
+                done += 1
+                if progress is not None:
+                    progress(done, total)
 
 
 # -- the frame cache -------------------------------------------------------------------------------
@@ -171,6 +207,102 @@ def build_frame_cache(cache_dir, signature: dict, shape: tuple, fill: Callable[[
     return np.load(path, mmap_mode="r")
 
 
+class ChunkedFrames:
+    """Frames (C, F, H, W, 3) uint8 RGB, decoded on their first read into cache files, one per chunk.
+
+    cache_dir: the video's frame-cache folder; the chunk of every frame keeps the whole video's cache
+    (cache_dir/frames_uint8.npy, as an eager load), any other chunk [a, a + n) its own subfolder
+    cache_dir/frames_<a>-<a+n-1>. key: the cache signature (build_dataset's); shape: the whole video's;
+    decoder: fills a chunk (FrameDecoder); chunks: (start, count) pairs covering frames 0..F-1 in order
+    (default: one, the whole video); start, count: the frames of the video this object shows (a view:
+    `frames[:, a:b]` reads only the chunks it overlaps). show_progress: a bar on stderr while a chunk
+    is decoded.
+
+    Indexing: frames[c, f] and frames[c, f, ...rest] (integers c, f: an array read from f's chunk) and
+    frames[:, a:b] (a view). Pickled without its open memory maps, so a view sent to another process
+    opens (or decodes) only its own chunks there.
+    """
+
+    dtype = np.dtype(np.uint8)
+    ndim = 5
+
+    def __init__(self, cache_dir, key: dict, shape: tuple, decoder: FrameDecoder, chunks=None, start: int = 0,
+                 count: int | None = None, show_progress: bool = False):
+        self.cache_dir, self.key, self.full_shape, self.decoder = Path(cache_dir), key, tuple(shape), decoder
+        total = self.full_shape[1]
+        self.chunks = [(0, total)] if chunks is None else [(int(a), int(n)) for a, n in chunks]
+        if [a for a, _ in self.chunks] != [sum(n for _, n in self.chunks[:i]) for i in range(len(self.chunks))] \
+                or sum(n for _, n in self.chunks) != total or any(n <= 0 for _, n in self.chunks):
+            raise ValueError(f"chunks {self.chunks} do not cut frames 0-{total - 1} into consecutive ranges")
+        self.start, self.count = int(start), total - int(start) if count is None else int(count)
+        self.show_progress = show_progress
+        self._open: dict[int, np.ndarray] = {}
+
+    @property
+    def shape(self) -> tuple:
+        c, _, h, w, ch = self.full_shape
+        return (c, self.count, h, w, ch)
+
+    def __len__(self) -> int:
+        return self.full_shape[0]
+
+    def with_options(self, chunks=None, show_progress: bool | None = None) -> "ChunkedFrames":
+        """These frames cut into other chunks and/or with progress bars switched on or off."""
+        return ChunkedFrames(self.cache_dir, self.key, self.full_shape, self.decoder,
+                             self.chunks if chunks is None else chunks, self.start, self.count,
+                             self.show_progress if show_progress is None else show_progress)
+
+    def chunk_dir(self, start: int, count: int) -> Path:
+        """The cache folder of chunk [start, start + count)."""
+        if (start, count) == (0, self.full_shape[1]):
+            return self.cache_dir
+        return self.cache_dir / f"frames_{start}-{start + count - 1}"
+
+    def chunk_of(self, frame: int) -> tuple[int, int]:
+        """(start, count) of the chunk holding video frame `frame`."""
+        for a, n in self.chunks:
+            if a <= frame < a + n:
+                return a, n
+        raise IndexError(f"frame {frame} is not within 0..{self.full_shape[1] - 1}")
+
+    def chunk(self, start: int, count: int) -> np.ndarray:
+        """The read-only memmap (C, count, H, W, 3) of chunk [start, start + count), decoded on first use."""
+        if start not in self._open:
+            from stg_runtime.progress import progress_callback
+
+            c, _, h, w, ch = self.full_shape
+            key = self.key if (start, count) == (0, self.full_shape[1]) else dict(self.key, chunk=[start, count])
+            label = f"decode frames {start}-{start + count - 1}"
+            with progress_callback(label, enabled=self.show_progress) as report:
+                self._open[start] = build_frame_cache(self.chunk_dir(start, count), key, (c, count, h, w, ch),
+                                                      lambda arr: self.decoder.fill(arr, start, report))
+        return self._open[start]
+
+    def __getitem__(self, index):
+        if not isinstance(index, tuple):
+            index = (index,)
+        if len(index) == 2 and index[0] == slice(None) and isinstance(index[1], slice):
+            a, b, step = index[1].indices(self.count)
+            if step != 1 or b <= a:
+                raise IndexError(f"ChunkedFrames: only [:, a:b] views with a < b, got {index[1]}")
+            view = self.with_options()
+            view.start, view.count = self.start + a, b - a
+            return view
+        if len(index) >= 2 and all(isinstance(i, (int, np.integer)) for i in index[:2]):
+            frame = int(index[1])
+            if not 0 <= frame < self.count:
+                raise IndexError(f"frame index {frame} out of range 0..{self.count - 1}")
+            a, n = self.chunk_of(self.start + frame)
+            return self.chunk(a, n)[(index[0], self.start + frame - a) + index[2:]]
+        raise IndexError(f"ChunkedFrames: unsupported index {index!r} (use [c, f, ...] or [:, a:b])")
+
+    def __getstate__(self) -> dict:
+        return {k: v for k, v in self.__dict__.items() if k != "_open"}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state, _open={})
+
+
 def common_frames(root, paths, labels, counts, sizes, num_frames: int | None = None) -> tuple[int, int, int]:
     """(num_frames, width, height) shared by every camera's frame source, or DataError naming the file.
 
@@ -207,7 +339,7 @@ def build_dataset(root: Path, layout: str, cameras: Sequence[Camera] | Callable[
                   sources: Sequence[FrameSource], *, test_camera: str, downscale: int = 1, cache_dir=None,
                   num_frames: int | None = None, fps: float | None = None, default_fps: float = DEFAULT_FPS,
                   bounds=None, progress=None, signature: dict | None = None,
-                  check: Callable[[], None] | None = None) -> Dataset:
+                  check: Callable[[], None] | None = None, lazy: bool = False) -> Dataset:
     """A Dataset from full-resolution cameras and their frame sources (same order), frames decoded into
     the frame cache <cache_dir or root/.stg_cache>/<layout>_<kind>_x<downscale>_f<num_frames>.
 
@@ -217,7 +349,9 @@ def build_dataset(root: Path, layout: str, cameras: Sequence[Camera] | Callable[
     the file. fps: used when given, else the first video's, else default_fps. bounds: (C, 2) near and
     far depth per camera, when the layout has them. signature: extra JSON-able cache key (e.g.
     calibration files). check: called before frames are decoded into a new cache (for costly
-    consistency checks). progress(done, total): called per decoded frame.
+    consistency checks). progress(done, total): called per decoded frame. lazy: decode nothing now; the
+    frames are a ChunkedFrames (one chunk, the whole video, until Dataset.chunked cuts it), `check` runs
+    at once and `progress` is not called (ChunkedFrames' show_progress draws a bar per chunk instead).
     """
     if int(downscale) != downscale or downscale < 1:
         raise ValueError(f"downscale must be a positive integer, got {downscale}")
@@ -254,19 +388,19 @@ def build_dataset(root: Path, layout: str, cameras: Sequence[Camera] | Callable[
                      for p, size, mtime in file_signature(files)], **(signature or {})}
     shape = (len(scaled), num_frames, out_h, out_w, 3)
 
+    decoder = FrameDecoder(list(sources), (width, height), (out_w, out_h))
+    cache_root = Path(cache_dir) if cache_dir is not None else root / ".stg_cache"
+    cache = cache_root / f"{layout}_{kind}_x{downscale}_f{num_frames}"
+    if lazy:
+        if check is not None:
+            check()
+        frames = ChunkedFrames(cache, key, shape, decoder)
+        return Dataset(scaled, frames, fps, test_cameras=[names.index(test_camera)], bounds=bounds, path=root)
+
     def fill(arr: np.ndarray) -> None:
         if check is not None:
             check()
-        total, done = len(sources) * num_frames, 0
-        for ci, src in enumerate(sources):
-            for k, (label, rgb) in enumerate(_decode(src, num_frames)):
-                if rgb.shape[:2] != (height, width):
-                    raise DataError(f"{label}: is {rgb.shape[1]}x{rgb.shape[0]}, expected {width}x{height}")
-                arr[ci, k] = resize(rgb, out_w, out_h) if downscale > 1 else rgb
-                done += 1
-                if progress is not None:
-                    progress(done, total)
+        decoder.fill(arr, 0, progress)
 
-    cache_root = Path(cache_dir) if cache_dir is not None else root / ".stg_cache"
-    frames = build_frame_cache(cache_root / f"{layout}_{kind}_x{downscale}_f{num_frames}", key, shape, fill)
+    frames = build_frame_cache(cache, key, shape, fill)
     return Dataset(scaled, frames, fps, test_cameras=[names.index(test_camera)], bounds=bounds, path=root)

@@ -63,7 +63,8 @@ def detect_layout(path) -> str:
 
 def load_dataset(path, layout: str = "auto", downscale: int = 1, *, cache_dir=None, num_frames: int | None = None,
                  fps: float | None = None, from_video: bool = False, test_camera: str | None = None,
-                 progress: Callable[[int, int], None] | None = None, show_progress: bool = False) -> Dataset:
+                 progress: Callable[[int, int], None] | None = None, show_progress: bool = False,
+                 lazy: bool = False) -> Dataset:
     """Read dataset folder `path` in `layout` ("auto": detect_layout) into a Dataset.
 
     downscale: integer factor dividing the frames' size and the intrinsics. cache_dir: where decoded
@@ -73,6 +74,8 @@ def load_dataset(path, layout: str = "auto", downscale: int = 1, *, cache_dir=No
     reference, cam10 for technicolor (else the first), the first camera in sorted order for rig).
     progress: callable(done, total) while frames are decoded; show_progress: without `progress`, a
     progress bar on stderr while they are (nothing is drawn when the frame cache is already there).
+    lazy: decode no frame now; frames are decoded into the cache chunk by chunk on their first read
+    (stg_train.data.frames.ChunkedFrames, Dataset.chunked), with a bar per chunk when show_progress.
     """
     root = Path(path)
     if layout == "auto":
@@ -81,11 +84,14 @@ def load_dataset(path, layout: str = "auto", downscale: int = 1, *, cache_dir=No
         raise ValueError(f"unknown layout {layout!r}; choose one of auto, {', '.join(LAYOUTS)}")
     if not root.is_dir():
         raise DataError(f"{root}: no such directory")
-    options = dict(downscale=downscale, cache_dir=cache_dir, num_frames=num_frames, fps=fps, test_camera=test_camera)
+    options = dict(downscale=downscale, cache_dir=cache_dir, num_frames=num_frames, fps=fps, test_camera=test_camera,
+                   lazy=lazy)
     if layout == "n3v":
         options["prefer_png"] = not from_video
     elif layout == "rig":
         options["from_video"] = from_video
+    if lazy:
+        return READERS[layout](root, **options).chunked(show_progress=show_progress)
     if progress is not None or not show_progress:
         return READERS[layout](root, progress=progress, **options)
     with progress_callback("decode frames") as report:

@@ -102,7 +102,7 @@ def _scene_fps(root: Path) -> float | None:
 
 
 def load_n3v(path, downscale: int = 1, cache_dir=None, prefer_png: bool = False, num_frames: int | None = None,
-             fps: float | None = None, progress=None, test_camera: str | None = None) -> Dataset:
+             fps: float | None = None, progress=None, test_camera: str | None = None, lazy: bool = False) -> Dataset:
     """Read a Neural 3D Video scene folder into a Dataset (frames through stg_train.data.frames).
 
     downscale: integer factor; frames are resized to (W // downscale, H // downscale) with cv2.INTER_AREA
@@ -112,7 +112,7 @@ def load_n3v(path, downscale: int = 1, cache_dir=None, prefer_png: bool = False,
     must then have the same count). fps: override the frame rate (default: the videos', else
     scene.json's, else 30). progress: optional callable(done, total) called per decoded frame while the
     cache is built. test_camera: the held-out camera (default cam00, the first camera when there is no
-    cam00).
+    cam00). lazy: decode nothing now (stg_train.data.frames.ChunkedFrames).
 
     Near and far depth bounds per camera come from poses_bounds.npy. Raises DataError, naming the file,
     for every problem with the data.
@@ -144,4 +144,4 @@ def load_n3v(path, downscale: int = 1, cache_dir=None, prefer_png: bool = False,
         test_camera = "cam00" if "cam00" in names else names[0]
     return build_dataset(root, "n3v", cameras, sources, test_camera=test_camera, downscale=downscale,
                          cache_dir=cache_dir, num_frames=num_frames, fps=fps,
-                         default_fps=_scene_fps(root) or DEFAULT_FPS, bounds=poses[:, 15:17], progress=progress)
+                         default_fps=_scene_fps(root) or DEFAULT_FPS, bounds=poses[:, 15:17], progress=progress, lazy=lazy)

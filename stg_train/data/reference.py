@@ -43,7 +43,7 @@ def _same_camera(a, b) -> bool:
 
 
 def load_reference(path, downscale: int = 1, cache_dir=None, num_frames: int | None = None, fps: float | None = None,
-                   progress=None, test_camera: str | None = None) -> Dataset:
+                   progress=None, test_camera: str | None = None, lazy: bool = False) -> Dataset:
     """Read the reference implementation's colmap_<i> layout into a Dataset.
 
     num_frames: use colmap_0 .. colmap_<num_frames-1> only (default: all). fps: default 30. test_camera:
@@ -101,4 +101,4 @@ def load_reference(path, downscale: int = 1, cache_dir=None, num_frames: int | N
     signature = {"models": [[str(Path(p).relative_to(root)), s, t] for p, s, t in file_signature(model_files)]}
     return build_dataset(root, "reference", cameras, sources, test_camera=test_camera, downscale=downscale,
                          cache_dir=cache_dir, num_frames=None, fps=fps, progress=progress, signature=signature,
-                         check=check_models)
+                         check=check_models, lazy=lazy)

@@ -63,7 +63,7 @@ def _frame_sources(root: Path, from_video: bool) -> dict[str, FrameSource]:
 
 
 def load_rig(path, downscale: int = 1, cache_dir=None, num_frames: int | None = None, fps: float | None = None,
-             progress=None, from_video: bool = False, test_camera: str | None = None) -> Dataset:
+             progress=None, from_video: bool = False, test_camera: str | None = None, lazy: bool = False) -> Dataset:
     """Read a rig-layout folder into a Dataset.
 
     from_video: read videos/ even when images/ exists (default: images/ when both exist). test_camera:
@@ -98,4 +98,4 @@ def load_rig(path, downscale: int = 1, cache_dir=None, num_frames: int | None = 
     if test_camera is None:
         test_camera = names[0]
     return build_dataset(root, "rig", cameras, [sources[n] for n in names], test_camera=test_camera,
-                         downscale=downscale, cache_dir=cache_dir, num_frames=num_frames, fps=fps, progress=progress)
+                         downscale=downscale, cache_dir=cache_dir, num_frames=num_frames, fps=fps, progress=progress, lazy=lazy)

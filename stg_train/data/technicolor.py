@@ -88,7 +88,7 @@ def parameters_to_camera(row: np.ndarray, width: int, height: int, name: str, wh
 
 
 def load_technicolor(path, downscale: int = 1, cache_dir=None, num_frames: int | None = None, fps: float | None = None,
-                     progress=None, test_camera: str | None = None) -> Dataset:
+                     progress=None, test_camera: str | None = None, lazy: bool = False) -> Dataset:
     """Read a Technicolor (undistorted) scene folder into a Dataset.
 
     num_frames: the first num_frames frames (default: all). fps: default 30. test_camera: default "cam10"
@@ -143,4 +143,4 @@ def load_technicolor(path, downscale: int = 1, cache_dir=None, num_frames: int |
     if test_camera is None:
         test_camera = "cam10" if "cam10" in names else names[0]
     return build_dataset(root, "technicolor", cameras, sources, test_camera=test_camera, downscale=downscale,
-                         cache_dir=cache_dir, num_frames=None, fps=fps, progress=progress)
+                         cache_dir=cache_dir, num_frames=None, fps=fps, progress=progress, lazy=lazy)

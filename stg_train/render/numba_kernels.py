@@ -1,10 +1,12 @@
 """The numba kernels of the CPU training splatter (no torch here): tiles, compositing and its gradient.
 
     rectangles(means2d, conic, opacity, radius, valid, width, height) -> rects, tiles, visible
-    forward(..., out, t_final, n_last)      composite every tile front to back (formats/stg-v1.md, 3)
-    backward(..., grad_out, parts, grads)   the vector-Jacobian product, back to front
+    forward(..., out, trans, n_last)         composite every tile front to back (formats/stg-v1.md, 3)
+    backward(..., grad_out, parts, grads)    the vector-Jacobian product, back to front
+    partitions(tile_order, tile_start, n)    the tiles dealt to backward's partitions
+    constants(dtype)                         the spec's constants as the kernels take them
 
-The projection (EWA, in torch: stg_train.render.torch_splat.project) hands over per Gaussian i:
+The projection (stg_train.render.numba_projection) hands over per Gaussian i:
 means2d (M, 2) pixels, conic (M, 3) [A, B, C] with power = 0.5 (A dx^2 + C dy^2) + B dx dy, opacity (M,),
 depth (M,) camera-space z, radius (M,) the spec's 3-sigma footprint in pixels and valid (M,). Each
 pixel composites, in (depth, index) order, the Gaussians whose footprint reaches its centre, with the
@@ -40,14 +42,12 @@ from numba.extending import overload
 from stg_runtime.splat_cpu import _exp_neg as exp_neg32
 from stg_runtime.spec import MAX_ALPHA, MAX_ALPHA32, MIN_ALPHA, MIN_ALPHA32, T_STOP, T_STOP32
 
-#: Columns of the per-Gaussian gradient rows that `backward` writes: d mean2d (x, y), d conic (A, B,
-#: C), d opacity, d depth, then d features (C channels).
-import os
-CACHE = os.environ.get("STG_NO_CACHE") != "1"
-#: Tile edge in pixels, a compile-time constant: the kernels' inner loops run over one tile row.
+#: Tile edge in pixels, a compile-time constant (the kernels' loops are over a tile's rows).
 TILE = 16
 #: Pixels in a tile: the length of each plane of a tile's state.
 PLANE = TILE * TILE
+#: Columns of the per-Gaussian gradient rows that `backward` writes: d mean2d (x, y), d conic (A, B,
+#: C), d opacity, d depth, then d features (C channels).
 GRAD_MEANS2D, GRAD_CONIC, GRAD_OPACITY, GRAD_DEPTH, GRAD_FEATURES = 0, 2, 5, 6, 7
 
 
@@ -58,8 +58,8 @@ def rectangles(means2d, conic, opacity, radius, valid, width, height):
     The footprint is the pixel centres within the 3-sigma radius (|p - mu| <= radius per axis); the
     rectangle keeps those that are also inside the ellipse where alpha can reach 1/255 (power <=
     log(255 o), plus 0.01 for rounding), clipped to the image. Returns rects (M, 4) int32 [u0, u1, v0,
-    v1], tiles (M, 4) int32 [tx0, tx1, ty0, ty1] of TILE-pixel tiles (both empty, first > second, when culled or when no
-    pixel can be reached) and visible (M,) bool: valid and the footprint holds a pixel of the image
+    v1], tiles (M, 4) int32 [tx0, tx1, ty0, ty1] of TILE-pixel tiles (both empty, first > second, when
+    culled or when no pixel can be reached) and visible (M,) bool: valid and the footprint holds a pixel of the image
     (the torch splatter's `visible`)."""
     m = means2d.shape[0]
     rects = np.empty((m, 4), np.int32)
@@ -155,7 +155,7 @@ F_T, F_COUNT, F_WEIGHT, F_ALPHA, F_DEPTH, F_FEATURES = 2, 3, 4, 5, 6, 7
 B_T, B_COUNT, B_SUFFIX, B_GV, B_WEIGHT, B_GALPHA, B_GDEPTH, B_GFEATURES = 2, 3, 4, 5, 6, 7, 8, 9
 
 
-@numba.njit(parallel=True, cache=CACHE, fastmath={"contract"})
+@numba.njit(parallel=True, cache=True, fastmath={"contract"})
 def forward(means2d, conic, opacity, features, depth, rects, tile_start, tile_ids, tile_order, tiles_x, consts,
             out, trans, n_last):
     """Composite every tile (lists as made by stg_runtime.splat_cpu._bin: tile t lists the Gaussian
@@ -228,7 +228,7 @@ def forward(means2d, conic, opacity, features, depth, rects, tile_start, tile_id
                     out[ch, y, x0 + l] = S[(F_FEATURES + ch) * PLANE + r * TILE + l]
 
 
-@numba.njit(parallel=True, cache=CACHE, fastmath={"contract", "reassoc", "nsz"})
+@numba.njit(parallel=True, cache=True, fastmath={"contract", "reassoc", "nsz"})
 def backward(means2d, conic, opacity, features, depth, rects, tile_start, tile_ids, tiles_x, consts, trans,
              n_last, grad_out, parts, part_start, grads):
     """Accumulate the gradient of every contribution into grads (P, M, 7 + C) (columns GRAD_*), the

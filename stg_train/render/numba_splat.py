@@ -1,15 +1,14 @@
-"""The CPU training splatter: EWA projection in torch, tiles and compositing in numba, with a backward pass.
+"""The CPU training splatter: numba kernels with a backward pass, as two torch autograd functions.
 
     rasterize_numba(means, quats, scales, opacities, features, camera) -> RenderOutput
 
 Same rules (formats/stg-v1.md, section 3) and same outputs as the torch splatter
-(stg_train.render.torch_splat), whose `project` it shares: the per-Gaussian projection is a few
-vectorised torch operations and autograd differentiates it. The per-pixel work, where the torch
-splatter spends its time and memory, is stg_train.render.numba_kernels: the forward pass composites
-tile by tile and keeps two numbers per pixel; the backward pass walks each tile's list back to front.
-Memory is proportional to Gaussians plus pixels, never to their product. The depth order and the tile
-lists come from the runtime's splatter (stg_runtime.splat_cpu), so the forward pass draws what the
-Player draws. CPU tensors only.
+(stg_train.render.torch_splat), value for value. `Project` is the EWA projection
+(stg_train.render.numba_projection); `Composite` the tiles and compositing
+(stg_train.render.numba_kernels): its forward pass composites tile by tile and keeps two numbers per
+pixel, its backward pass walks each tile's list back to front. Memory is proportional to Gaussians
+plus pixels, never to their product. The depth order and the tile lists come from the runtime's
+splatter (stg_runtime.splat_cpu), so the forward pass draws what the Player draws. CPU tensors only.
 """
 from __future__ import annotations
 
@@ -18,12 +17,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from stg_runtime.projection import camera_params
 from stg_runtime.splat_cpu import _bin as bin_tiles
 from stg_runtime.splat_cpu import _sort_by_depth as sort_by_depth
 
 from . import numba_kernels as kernels
+from . import numba_projection
 from .output import RenderOutput
-from .torch_splat import project
 
 class _Tiles:
     """What the backward pass needs from the forward pass, beside the inputs (numpy arrays)."""
@@ -35,6 +35,34 @@ class _Tiles:
 
 def _numpy(t: Tensor) -> np.ndarray:
     return np.ascontiguousarray(t.detach().numpy())
+
+
+class Project(torch.autograd.Function):
+    """EWA projection: (means (M, 3), quats (M, 4), scales (M, 3), opacities (M,), camera) -> (means2d
+    (M, 2), conic (M, 3), depth (M,), radius (M,) int64, valid (M,) bool), differentiable in means, quats
+    and scales (radius and valid are not; the opacities only decide validity)."""
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, camera):
+        arrays = [_numpy(x) for x in (means, quats, scales, opacities)]
+        m, dtype = means.shape[0], means.dtype
+        means2d, conic, depth = torch.empty(m, 2, dtype=dtype), torch.empty(m, 3, dtype=dtype), torch.empty(m, dtype=dtype)
+        radius, valid = torch.empty(m, dtype=torch.int64), torch.empty(m, dtype=torch.bool)
+        cam = camera_params(camera)
+        numba_projection.forward(*arrays, cam, means2d.numpy(), conic.numpy(), depth.numpy(), radius.numpy(),
+                                 valid.numpy())
+        ctx.arrays, ctx.cam, ctx.valid = arrays[:3], cam, valid.numpy()
+        ctx.mark_non_differentiable(radius, valid)
+        return means2d, conic, depth, radius, valid
+
+    @staticmethod
+    def backward(ctx, g_means2d, g_conic, g_depth, _g_radius, _g_valid):
+        means, quats, scales = ctx.arrays
+        grads = [np.zeros_like(x) for x in (means, quats, scales)]
+        incoming = [np.zeros((means.shape[0],) + shape, means.dtype) if g is None else _numpy(g)
+                    for g, shape in ((g_means2d, (2,)), (g_conic, (3,)), (g_depth, ()))]
+        numba_projection.backward(means, quats, scales, ctx.cam, ctx.valid, *incoming, *grads)
+        return (*[torch.from_numpy(g) for g in grads], None, None)
 
 
 class Composite(torch.autograd.Function):
@@ -104,13 +132,11 @@ def rasterize_numba(means: Tensor, quats: Tensor, scales: Tensor, opacities: Ten
     W, H = camera.width, camera.height
     opacities = opacities.reshape(-1)
     features = features.reshape(opacities.shape[0], features.shape[-1])
-    proj = project(means, quats, scales, opacities, camera)
-    means2d = proj.means2d
+    means2d, conic, z, radius, valid = Project.apply(means, quats, scales, opacities, camera)
     if means2d.requires_grad:
         means2d.retain_grad()
-    feats, alpha, depth_sum, visible = Composite.apply(means2d, proj.conic, opacities, features, proj.depth,
-                                                       proj.radius, proj.valid, W, H)
-    radii = torch.where(visible, proj.radius, torch.zeros_like(proj.radius))
+    feats, alpha, depth_sum, visible = Composite.apply(means2d, conic, opacities, features, z, radius, valid, W, H)
+    radii = torch.where(visible, radius, torch.zeros_like(radius))
     depth = torch.where(alpha > 0, depth_sum / torch.where(alpha > 0, alpha, torch.ones_like(alpha)),
                         torch.zeros_like(alpha))
     return RenderOutput(feats, alpha, depth, means2d, radii, visible)

@@ -1,0 +1,71 @@
+"""The clock behind the viewer's time slider: play, pause, loop and speed over a model's frames.
+
+Times are seconds of the video, as `Player.render` takes them; the range is the model's first to last
+frame, so playback runs across segment boundaries (the Player picks the segment for each time).
+"""
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+
+
+class Playback:
+    """Current time `time` in [first, last] seconds (frame k of the model at k / fps). `advance(dt)`
+    moves it by dt * speed while playing: past `last` it wraps to `first` when `loop` is on, else it
+    stops at `last` and pauses. Thread-safe."""
+
+    def __init__(self, first: float, last: float, fps: float):
+        if not last >= first:
+            raise ValueError(f"playback range [{first}, {last}] s is empty")
+        self.first, self.last, self.fps = float(first), float(last), float(fps)
+        self.time = self.first
+        self.playing = False
+        self.loop = True
+        self.speed = 1.0
+        self._lock = threading.Lock()
+        self._last_tick: float | None = None
+
+    @classmethod
+    def of(cls, player) -> "Playback":
+        """The playback range of a Player: its first to its last frame."""
+        times = player.frame_times()
+        return cls(float(times[0]), float(times[-1]), player.fps)
+
+    @property
+    def frame(self) -> int:
+        """The index (from the video's frame 0) of the frame shown at the current time."""
+        return int(np.floor(self.time * self.fps + 1e-6))
+
+    def seek(self, t: float) -> float:
+        """Set the time (clamped to the range); returns it."""
+        with self._lock:
+            self.time = min(max(float(t), self.first), self.last)
+            return self.time
+
+    def tick(self, now: float | None = None) -> float:
+        """Advance by the wall-clock seconds since the last tick (time.monotonic(), or `now`); returns
+        the time. Whoever needs the current time calls it: the slider's clock and every browser's
+        stream, so a stream that renders faster than the slider moves still gets a new time per frame."""
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            last, self._last_tick = self._last_tick, now
+        return self.advance(0.0 if last is None else max(now - last, 0.0))
+
+    def advance(self, seconds: float) -> float:
+        """Move on by `seconds` of wall-clock time (times speed) while playing; returns the time."""
+        with self._lock:
+            if not self.playing:
+                return self.time
+            t = self.time + seconds * self.speed
+            span = self.last - self.first
+            if t > self.last:
+                if self.loop and span > 0:
+                    period = span + 1.0 / self.fps  # the last frame is shown for 1 / fps too
+                    t = self.first + (t - self.last - 1.0 / self.fps + 1e-9) % period
+                    t = min(t, self.last)
+                else:
+                    t, self.playing = self.last, False
+            self.time = t
+            return t

@@ -1,0 +1,198 @@
+"""The EWA projection of the CPU training splatter, forward and backward, in numba (no torch here).
+
+    forward(means, quats, scales, opacities, cam, means2d, conic, depth, radius, valid)
+    backward(means, quats, scales, cam, valid, g_means2d, g_conic, g_depth, g_means, g_quats, g_scales)
+
+The rules of formats/stg-v1.md, section 3, as stg_train.render.torch_splat.project states them (its
+outputs and their gradients, value for value): camera-space p = R w + t; the 2D mean (fx x/z + cx,
+fy y/z + cy) (for z <= NEAR, z taken as 1: culled, but finite); the 2D covariance T T^T + 0.3 I with
+T = J R Rq S, J the EWA Jacobian with x/z and y/z clamped (no gradient through a clamped value);
+the conic [A, B, C] = [c, -b, a] / det of the covariance [[a, b], [b, c]]; the 3-sigma radius;
+valid = in front of the near plane, det > 0 and opacity >= 1/255 (no gradient through the conic
+otherwise). cam: stg_runtime.projection.camera_params(camera). Arithmetic in float64, outputs in the
+output arrays' dtype. One Gaussian per iteration, in parallel.
+"""
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from stg_runtime.spec import BLUR, MIN_ALPHA, NEAR
+
+
+
+@numba.njit(cache=True)
+def _rotation(qw, qx, qy, qz):
+    """The rotation matrix of the quaternion (w, x, y, z), assumed unit, as 9 row-major entries."""
+    return (1.0 - 2.0 * (qy * qy + qz * qz), 2.0 * (qx * qy - qw * qz), 2.0 * (qx * qz + qw * qy),
+            2.0 * (qx * qy + qw * qz), 1.0 - 2.0 * (qx * qx + qz * qz), 2.0 * (qy * qz - qw * qx),
+            2.0 * (qx * qz - qw * qy), 2.0 * (qy * qz + qw * qx), 1.0 - 2.0 * (qx * qx + qy * qy))
+
+
+@numba.njit(cache=True)
+def _axes(cam, quats, scales, i):
+    """(M as 9 row-major entries: the Gaussian's scaled axes in camera space, M = R Rq S; the unit
+    quaternion (4); its norm before normalising)."""
+    qw, qx, qy, qz = np.float64(quats[i, 0]), np.float64(quats[i, 1]), np.float64(quats[i, 2]), np.float64(quats[i, 3])
+    norm = max(math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz), 1e-30)
+    qw, qx, qy, qz = qw / norm, qx / norm, qy / norm, qz / norm
+    r = _rotation(qw, qx, qy, qz)
+    m = np.empty(9)
+    for row in range(3):
+        for col in range(3):
+            m[row * 3 + col] = (cam[row * 3] * r[col] + cam[row * 3 + 1] * r[3 + col]
+                                + cam[row * 3 + 2] * r[6 + col]) * np.float64(scales[i, col])
+    return m, (qw, qx, qy, qz), norm
+
+
+@numba.njit(cache=True)
+def _jacobian(cam, x, y, z):
+    """The EWA Jacobian's non-zero entries (j00, j02, j11, j12), the clamped x/z and y/z, and whether each
+    was inside its range (a gradient flows through it)."""
+    xz, yz = x / z, y / z
+    x_free = cam[19] <= xz <= cam[20]
+    y_free = cam[21] <= yz <= cam[22]
+    xz = min(max(xz, cam[19]), cam[20])
+    yz = min(max(yz, cam[21]), cam[22])
+    return cam[12] / z, -cam[12] * xz / z, cam[13] / z, -cam[13] * yz / z, xz, yz, x_free, y_free
+
+
+@numba.njit(parallel=True, cache=True)
+def forward(means, quats, scales, opacities, cam, means2d, conic, depth, radius, valid):
+    """Fill means2d (M, 2), conic (M, 3), depth (M,), radius (M,) int64 and valid (M,) bool."""
+    for i in numba.prange(means.shape[0]):
+        wx, wy, wz = np.float64(means[i, 0]), np.float64(means[i, 1]), np.float64(means[i, 2])
+        x = cam[0] * wx + cam[1] * wy + cam[2] * wz + cam[9]
+        y = cam[3] * wx + cam[4] * wy + cam[5] * wz + cam[10]
+        z = cam[6] * wx + cam[7] * wy + cam[8] * wz + cam[11]
+        depth[i] = z
+        in_front = z > NEAR
+        zs = z if in_front else 1.0
+        means2d[i, 0] = cam[12] * x / zs + cam[14]
+        means2d[i, 1] = cam[13] * y / zs + cam[15]
+        conic[i, 0] = conic[i, 1] = conic[i, 2] = 0.0
+        radius[i] = 0
+        valid[i] = False
+        if not in_front or not np.float64(opacities[i]) >= MIN_ALPHA:
+            continue
+        m, _, _ = _axes(cam, quats, scales, i)
+        j00, j02, j11, j12, _, _, _, _ = _jacobian(cam, x, y, z)
+        a = b = c = 0.0
+        for k in range(3):
+            t0 = j00 * m[k] + j02 * m[6 + k]
+            t1 = j11 * m[3 + k] + j12 * m[6 + k]
+            a += t0 * t0
+            b += t0 * t1
+            c += t1 * t1
+        a += BLUR
+        c += BLUR
+        det = a * c - b * b
+        if not det > 0.0:
+            continue
+        valid[i] = True
+        conic[i, 0] = c / det
+        conic[i, 1] = -b / det
+        conic[i, 2] = a / det
+        mid = 0.5 * (a + c)
+        lam = mid + math.sqrt(max(mid * mid - det, 0.1))
+        radius[i] = int(math.ceil(3.0 * math.sqrt(max(lam, 0.0))))
+
+
+@numba.njit(parallel=True, cache=True)
+def backward(means, quats, scales, cam, valid, g_means2d, g_conic, g_depth, g_means, g_quats, g_scales):
+    """The vector-Jacobian product of `forward`: from dL/d means2d (M, 2), dL/d conic (M, 3) and
+    dL/d depth (M,), fill dL/d means (M, 3), dL/d quats (M, 4) and dL/d scales (M, 3)."""
+    fx, fy = cam[12], cam[13]
+    for i in numba.prange(means.shape[0]):
+        wx, wy, wz = np.float64(means[i, 0]), np.float64(means[i, 1]), np.float64(means[i, 2])
+        x = cam[0] * wx + cam[1] * wy + cam[2] * wz + cam[9]
+        y = cam[3] * wx + cam[4] * wy + cam[5] * wz + cam[10]
+        z = cam[6] * wx + cam[7] * wy + cam[8] * wz + cam[11]
+        gu, gv = np.float64(g_means2d[i, 0]), np.float64(g_means2d[i, 1])
+        gz = np.float64(g_depth[i])
+        for k in range(4):
+            g_quats[i, k] = 0.0
+        for k in range(3):
+            g_scales[i, k] = 0.0
+        if not z > NEAR:  # the 2D mean with z taken as 1
+            gx, gy = gu * fx, gv * fy
+        else:
+            gx, gy = gu * fx / z, gv * fy / z
+            gz -= (gu * fx * x + gv * fy * y) / (z * z)
+        if valid[i]:
+            gx, gy, gz = _covariance_backward(cam, quats, scales, g_conic, i, x, y, z, gx, gy, gz, g_quats, g_scales)
+        for k in range(3):  # p = R w + t
+            g_means[i, k] = cam[k] * gx + cam[3 + k] * gy + cam[6 + k] * gz
+
+
+@numba.njit(cache=True)
+def _covariance_backward(cam, quats, scales, g_conic, i, x, y, z, gx, gy, gz, g_quats, g_scales):
+    """Add the conic's gradient to (gx, gy, gz) (camera space) and write dL/d quats and dL/d scales of
+    Gaussian i. Returns the new (gx, gy, gz)."""
+    fx, fy = cam[12], cam[13]
+    m, q, norm = _axes(cam, quats, scales, i)
+    j00, j02, j11, j12, xz, yz, x_free, y_free = _jacobian(cam, x, y, z)
+    t = np.empty(6)  # T = J M, rows t[0:3] and t[3:6]
+    for k in range(3):
+        t[k] = j00 * m[k] + j02 * m[6 + k]
+        t[3 + k] = j11 * m[3 + k] + j12 * m[6 + k]
+    a = t[0] * t[0] + t[1] * t[1] + t[2] * t[2] + BLUR
+    b = t[0] * t[3] + t[1] * t[4] + t[2] * t[5]
+    c = t[3] * t[3] + t[4] * t[4] + t[5] * t[5] + BLUR
+    det = a * c - b * b
+    gA, gB, gC = np.float64(g_conic[i, 0]), np.float64(g_conic[i, 1]), np.float64(g_conic[i, 2])
+    d2 = det * det
+    ga = (-gA * c * c + gB * b * c - gC * b * b) / d2
+    gb = (2.0 * gA * b * c - gB * (a * c + b * b) + 2.0 * gC * a * b) / d2
+    gc = (-gA * b * b + gB * a * b - gC * a * a) / d2
+    gt = np.empty(6)  # cov = T T^T
+    for k in range(3):
+        gt[k] = 2.0 * ga * t[k] + gb * t[3 + k]
+        gt[3 + k] = gb * t[k] + 2.0 * gc * t[3 + k]
+    # T = J M: dL/dJ = dL/dT M^T (its non-zero entries), dL/dM = J^T dL/dT.
+    g00 = gt[0] * m[0] + gt[1] * m[1] + gt[2] * m[2]
+    g02 = gt[0] * m[6] + gt[1] * m[7] + gt[2] * m[8]
+    g11 = gt[3] * m[3] + gt[4] * m[4] + gt[5] * m[5]
+    g12 = gt[3] * m[6] + gt[4] * m[7] + gt[5] * m[8]
+    gm = np.empty(9)
+    for k in range(3):
+        gm[k] = j00 * gt[k]
+        gm[3 + k] = j11 * gt[3 + k]
+        gm[6 + k] = j02 * gt[k] + j12 * gt[3 + k]
+    # J's entries in terms of x, y, z: j00 = fx / z, j02 = -fx xz / z (xz = x / z unless clamped).
+    gz -= (g00 * fx + g11 * fy) / (z * z)
+    if x_free:
+        gx -= g02 * fx / (z * z)
+        gz += g02 * 2.0 * fx * x / (z * z * z)
+    else:
+        gz += g02 * fx * xz / (z * z)
+    if y_free:
+        gy -= g12 * fy / (z * z)
+        gz += g12 * 2.0 * fy * y / (z * z * z)
+    else:
+        gz += g12 * fy * yz / (z * z)
+    # M = R Rq S: dL/d(Rq S) = R^T dL/dM, then split into Rq and S.
+    qw, qx, qy, qz = q
+    r = _rotation(qw, qx, qy, qz)
+    gr = np.empty(9)
+    for row in range(3):
+        for col in range(3):
+            g = cam[row] * gm[col] + cam[3 + row] * gm[3 + col] + cam[6 + row] * gm[6 + col]
+            s = np.float64(scales[i, col])
+            gr[row * 3 + col] = g * s
+            g_scales[i, col] += g * r[row * 3 + col]
+    gw = 2.0 * (-qz * gr[1] + qy * gr[2] + qz * gr[3] - qx * gr[5] - qy * gr[6] + qx * gr[7])
+    gqx = 2.0 * (qy * gr[1] + qz * gr[2] + qy * gr[3] - 2.0 * qx * gr[4] - qw * gr[5] + qz * gr[6]
+                 + qw * gr[7] - 2.0 * qx * gr[8])
+    gqy = 2.0 * (-2.0 * qy * gr[0] + qx * gr[1] + qw * gr[2] + qx * gr[3] + qz * gr[5] - qw * gr[6]
+                 + qz * gr[7] - 2.0 * qy * gr[8])
+    gqz = 2.0 * (-2.0 * qz * gr[0] - qw * gr[1] + qx * gr[2] + qw * gr[3] - 2.0 * qz * gr[4] + qy * gr[5]
+                 + qx * gr[6] + qy * gr[7])
+    dot = qw * gw + qx * gqx + qy * gqy + qz * gqz  # through q / |q|
+    g_quats[i, 0] = (gw - qw * dot) / norm
+    g_quats[i, 1] = (gqx - qx * dot) / norm
+    g_quats[i, 2] = (gqy - qy * dot) / norm
+    g_quats[i, 3] = (gqz - qz * dot) / norm
+    return gx, gy, gz
