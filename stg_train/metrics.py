@@ -3,6 +3,11 @@ defines them, and the held-out evaluation of a model through the runtime Player.
 
 Images are float arrays (H, W, 3) with values in [0, 1]. The training loss has its own differentiable
 SSIM (stg_train.losses); these are the reported figures.
+
+Dynamic and static regions: for a static camera, `dynamic_mask` marks the pixels whose ground truth
+changes over the clip; PSNR and SSIM are then also reported over those pixels ("dynamic_psnr",
+"dynamic_ssim") and over the others ("static_psnr", "static_ssim"), so that moving content is judged
+apart from the background that dominates the whole-image figures.
 """
 from __future__ import annotations
 
@@ -13,6 +18,16 @@ import numpy as np
 #: The figures of a held-out evaluation kept in metrics.json and printed by the command lines (and the
 #: LPIPS_KEYS where LPIPS was computed).
 HELDOUT_KEYS = ("psnr", "ssim", "dssim1", "dssim2", "fps", "images", "cameras")
+#: The per-region figures of a held-out evaluation (dynamic_mask): means over the images, and the
+#: fraction of the held-out pixels that are dynamic and the threshold that decided it.
+REGION_KEYS = ("dynamic_psnr", "dynamic_ssim", "static_psnr", "static_ssim", "dynamic_fraction",
+               "dynamic_threshold")
+#: dynamic_mask's default threshold: a change of more than 0.1 (25.5 of 255 levels) in some colour
+#: channel over the clip makes a pixel dynamic (docs/dynamic.md says why this value).
+DYNAMIC_THRESHOLD = 0.1
+#: scikit-image's SSIM averages its local map over the pixels at least this far from the border (half
+#: of its 7x7 window).
+SSIM_BORDER = 3
 #: LPIPS's networks as the paper's evaluation uses them (AlexNet; its code also reports VGG).
 LPIPS_NETS = ("alex", "vgg")
 LPIPS_KEYS = tuple(f"lpips_{net}" for net in LPIPS_NETS)
@@ -46,6 +61,53 @@ def dssim2(image: np.ndarray, reference: np.ndarray) -> float:
     return (1.0 - ssim(image, reference, 2.0)) / 2.0
 
 
+def ssim_map(image: np.ndarray, reference: np.ndarray, data_range: float = 1.0) -> np.ndarray:
+    """(H, W, 3) local SSIM of scikit-image's structural_similarity (7x7 uniform window, per colour
+    channel); `ssim` is its mean over the pixels at least SSIM_BORDER from the image border."""
+    from skimage.metrics import structural_similarity
+
+    _, full = structural_similarity(np.asarray(image, np.float64), np.asarray(reference, np.float64),
+                                    channel_axis=-1, data_range=data_range, full=True)
+    return full
+
+
+def dynamic_mask(frames, threshold: float = DYNAMIC_THRESHOLD) -> np.ndarray:
+    """(H, W) bool: the pixels of a static camera whose ground truth changes over the clip.
+
+    frames: iterable of the camera's (H, W, 3) ground-truth images in [0, 1] (float) over the clip (the
+    frames evaluated). A pixel is dynamic when, in some colour channel, its largest and smallest value
+    over the frames differ by more than `threshold` (same units: 0.1 is 25.5 of 255 levels):
+    max_c (max_t I[t, c] - min_t I[t, c]) > threshold. Moving and spinning objects, what appears or
+    vanishes and the shadows they cast are dynamic; the rest of the picture is static. No labels are
+    needed, but the camera must not move, and noise in the frames (lossy video) above the threshold
+    would count as motion: lossless frames (the default for the N3V layout with PNG frames) are best.
+    """
+    low = high = None
+    for image in frames:
+        image = np.asarray(image, np.float32)
+        low = image.copy() if low is None else np.minimum(low, image)
+        high = image.copy() if high is None else np.maximum(high, image)
+    if low is None:
+        raise ValueError("dynamic_mask: no frames")
+    return (high - low).max(axis=-1) > threshold
+
+
+def region_metrics(image: np.ndarray, reference: np.ndarray, mask: np.ndarray,
+                   ssim_values: np.ndarray | None = None) -> dict[str, float | None]:
+    """{"psnr", "ssim"} of `image` against `reference` over the pixels where the (H, W) bool `mask` is
+    True: PSNR (dB, peak 1) of their mean squared error, and the mean of the local SSIM map (ssim_map,
+    data_range 1; pass it as ssim_values when already computed) over those of them at least SSIM_BORDER
+    from the border. A figure is None when no pixel is left to average."""
+    mask = np.asarray(mask, bool)
+    diff = np.asarray(image, np.float64)[mask] - np.asarray(reference, np.float64)[mask]
+    s = ssim_map(image, reference) if ssim_values is None else ssim_values
+    b = SSIM_BORDER
+    inner = np.zeros_like(mask)
+    inner[b:mask.shape[0] - b, b:mask.shape[1] - b] = mask[b:mask.shape[0] - b, b:mask.shape[1] - b]
+    return {"psnr": psnr_of_mse(float(np.mean(diff ** 2))) if diff.size else None,
+            "ssim": float(s[inner].mean()) if inner.any() else None}
+
+
 def lpips_models(nets=LPIPS_NETS) -> tuple[dict, str | None]:
     """({net: network}, None) of the lpips package's LPIPS (version 0.1) for each of `nets`, or ({}, why
     not). The package is optional (python -m pip install lpips, the `lpips` extra, which needs a
@@ -75,43 +137,91 @@ def lpips_distance(network, image: np.ndarray, reference: np.ndarray) -> float:
         return float(network(tensor(image), tensor(reference)).mean())
 
 
-def image_metrics(image: np.ndarray, reference: np.ndarray, lpips: dict | None = None) -> dict[str, float]:
-    """All per-image figures: psnr (dB), ssim (data_range 1), dssim1, dssim2, and lpips_<net> for each
-    network of `lpips` (lpips_models' dict)."""
+def image_metrics(image: np.ndarray, reference: np.ndarray, lpips: dict | None = None,
+                  dynamic: np.ndarray | None = None) -> dict[str, float | None]:
+    """All per-image figures: psnr (dB), ssim (data_range 1), dssim1, dssim2, lpips_<net> for each
+    network of `lpips` (lpips_models' dict), and with an (H, W) bool `dynamic` mask (dynamic_mask) the
+    region_metrics of its pixels and of the others: dynamic_psnr, dynamic_ssim, static_psnr, static_ssim
+    (None for an empty region)."""
     s1, s2 = ssim(image, reference, 1.0), ssim(image, reference, 2.0)
     figures = {"psnr": psnr(image, reference), "ssim": s1, "dssim1": (1 - s1) / 2, "dssim2": (1 - s2) / 2}
+    if dynamic is not None:
+        local = ssim_map(image, reference)
+        for region, mask in (("dynamic", dynamic), ("static", ~np.asarray(dynamic, bool))):
+            for key, value in region_metrics(image, reference, mask, local).items():
+                figures[f"{region}_{key}"] = value
     for net, network in (lpips or {}).items():
         figures[f"lpips_{net}"] = lpips_distance(network, image, reference)
     return figures
 
 
-def evaluate_player(player, dataset, camera_indices=None, frames=None, lpips: dict | None = None) -> dict:
-    """Render dataset cameras (default: the held-out ones) at every frame (or `frames`) through a
-    stg_runtime Player and compare with the ground truth.
+def summarise(rows: list[dict], masks: list[np.ndarray], threshold: float) -> dict:
+    """The means over the images of per-image figures `rows` (image_metrics): every figure they share,
+    the region ones over the images where they are not None (None where none has them), plus
+    "dynamic_fraction" (the share of dynamic pixels over the cameras' (H, W) `masks`) and
+    "dynamic_threshold"."""
+    means = {}
+    for key in rows[0]:
+        if key in ("camera", "frame"):
+            continue
+        values = [r[key] for r in rows if r.get(key) is not None]
+        means[key] = float(np.mean(values)) if values else None
+    means["dynamic_fraction"] = float(np.mean([m.mean() for m in masks])) if masks else None
+    means["dynamic_threshold"] = float(threshold)
+    return means
 
-    Returns {"psnr", "ssim", "dssim1", "dssim2"} (and "lpips_<net>" for each network of `lpips`) means
-    over the images, "fps" (images rendered per second of Player.render time, after one warm-up render),
-    "images", "cameras" (names), "per_frame" (list of per-image figures with camera name and frame)."""
+
+def evaluate_images(render, dataset, camera_indices=None, frames=None, lpips: dict | None = None,
+                    threshold: float = DYNAMIC_THRESHOLD) -> dict:
+    """Compare `render(camera_index, frame)` ((H, W, 3) in [0, 1]) with the ground truth for dataset
+    cameras (default: the held-out ones) at every frame (or `frames`), with each camera's dynamic_mask
+    over those frames at `threshold`.
+
+    Returns summarise's means ("psnr", "ssim", "dssim1", "dssim2", the REGION_KEYS, "lpips_<net>" for
+    each network of `lpips`), "seconds" (spent in `render`), "images", "cameras" (names), "per_frame"
+    (the per-image figures with camera name and frame)."""
     cams = dataset.test_cameras if camera_indices is None else list(camera_indices)
-    start_frame = getattr(dataset, "start_frame", 0)  # a Dataset.frame_range view: its frame j is video frame start + j
     frames = list(range(dataset.num_frames)) if frames is None else list(frames)
     if not cams or not frames:
-        raise ValueError("evaluate_player: no camera or no frame to evaluate")
-    player.render(dataset.cameras[cams[0]], player.start_time)  # warm-up (numba, onnxruntime)
-    rows, seconds = [], 0.0
+        raise ValueError("no camera or no frame to evaluate")
+    rows, masks, seconds = [], [], 0.0
     for ci in cams:
-        cam = dataset.cameras[ci]
+        mask = dynamic_mask((dataset.image(ci, j) for j in frames), threshold)
+        masks.append(mask)
         for j in frames:
             start = time.perf_counter()
-            image = player.render(cam, (start_frame + j) / dataset.fps)
+            image = render(ci, j)
             seconds += time.perf_counter() - start
-            rows.append({"camera": cam.name, "frame": j, **image_metrics(image, dataset.image(ci, j), lpips)})
-    keys = ("psnr", "ssim", "dssim1", "dssim2") + tuple(f"lpips_{net}" for net in (lpips or {}))
-    means = {k: float(np.mean([r[k] for r in rows])) for k in keys}
-    return {**means, "fps": len(rows) / seconds if seconds > 0 else float("inf"), "images": len(rows),
+            rows.append({"camera": dataset.cameras[ci].name, "frame": j,
+                         **image_metrics(image, dataset.image(ci, j), lpips, mask)})
+    return {**summarise(rows, masks, threshold), "seconds": seconds, "images": len(rows),
             "cameras": [dataset.cameras[ci].name for ci in cams], "per_frame": rows}
 
 
+def evaluate_player(player, dataset, camera_indices=None, frames=None, lpips: dict | None = None,
+                    threshold: float = DYNAMIC_THRESHOLD) -> dict:
+    """Render dataset cameras (default: the held-out ones) at every frame (or `frames`) through a
+    stg_runtime Player and compare with the ground truth (evaluate_images, dynamic regions at
+    `threshold`).
+
+    Returns {"psnr", "ssim", "dssim1", "dssim2"}, the REGION_KEYS (and "lpips_<net>" for each network of
+    `lpips`): means over the images; "fps" (images rendered per second of Player.render time, after one
+    warm-up render), "images", "cameras" (names), "per_frame" (list of per-image figures with camera
+    name and frame)."""
+    cams = dataset.test_cameras if camera_indices is None else list(camera_indices)
+    start_frame = getattr(dataset, "start_frame", 0)  # a Dataset.frame_range view: its frame j is video frame start + j
+    if not cams:
+        raise ValueError("evaluate_player: no camera or no frame to evaluate")
+    player.render(dataset.cameras[cams[0]], player.start_time)  # warm-up (numba, onnxruntime)
+    try:
+        result = evaluate_images(lambda ci, j: player.render(dataset.cameras[ci], (start_frame + j) / dataset.fps),
+                                 dataset, cams, frames, lpips, threshold)
+    except ValueError as e:
+        raise ValueError(f"evaluate_player: {e}") from None
+    seconds = result.pop("seconds")
+    return {**result, "fps": result["images"] / seconds if seconds > 0 else float("inf")}
+
+
 def heldout(result: dict) -> dict:
-    """The HELDOUT_KEYS (and LPIPS_KEYS where computed) of an evaluate_player result."""
-    return {k: result[k] for k in HELDOUT_KEYS + LPIPS_KEYS if k in result}
+    """The HELDOUT_KEYS, REGION_KEYS (and LPIPS_KEYS where computed) of an evaluate_player result."""
+    return {k: result[k] for k in HELDOUT_KEYS + REGION_KEYS + LPIPS_KEYS if k in result}

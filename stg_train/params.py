@@ -28,7 +28,7 @@ opacity 1 at every time; t_center then only anchors the motion), "motion" keeps 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import NamedTuple
 
 import numpy as np
@@ -105,6 +105,7 @@ class LearningRates:
 
     Lengths scale with the scene extent: xyz decays exponentially from xyz_init to xyz_final (times
     extent) over the run; motion is xyz_init x extent x motion_factor, constant. The others are constant.
+    The trainer uses them `stretched` to its run's length.
     """
 
     xyz_init: float = 1.6e-4
@@ -123,6 +124,18 @@ class LearningRates:
     def scaled(self, factor: float) -> "LearningRates":
         """Every rate times `factor` (short runs take bigger steps)."""
         return LearningRates(**{k: (v * factor if k != "motion_factor" else v) for k, v in asdict(self).items()})
+
+    def stretched(self, iterations: int, reference_iterations: int = 30000, most: float = 50.0) -> "LearningRates":
+        """These rates for a run of `iterations` steps: the motion and rotation velocities' rates
+        (motion_factor, omega) times reference_iterations / iterations, within [1, most] (50 was the
+        largest factor measured, at 600 steps), the others unchanged.
+
+        Those velocities start at 0 and must grow to the scene's speeds, and Adam moves a parameter by
+        at most about its rate per step: the reference's rates let them grow over its 30k steps, and a
+        run stretched to fewer steps (Schedule.scaled) needs proportionally larger ones, or temporal
+        opacity ends up doing the motion's work (docs/dynamic.md has the measurements)."""
+        f = min(max(1.0, reference_iterations / max(int(iterations), 1)), most)
+        return replace(self, motion_factor=self.motion_factor * f, omega=self.omega * f)
 
 
 class DecoderMLP(torch.nn.Module):

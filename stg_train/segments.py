@@ -24,7 +24,7 @@ from typing import NamedTuple, Sequence
 from stg_runtime import format as stg_format
 from stg_runtime.atomic import write_atomic
 
-from .metrics import LPIPS_KEYS
+from .metrics import LPIPS_KEYS, REGION_KEYS
 
 PLAN_NAME = "plan.json"
 
@@ -111,10 +111,13 @@ def finished(folder: Path, span: Span) -> bool:
 
 def pooled(results: Sequence[dict]) -> dict:
     """One evaluate_player-style summary of several (means weighted by their image counts; LPIPS where
-    every one has it)."""
+    every one has it; the dynamic / static region figures over those that have them)."""
     images = sum(r["images"] for r in results)
     keys = ["psnr", "ssim", "dssim1", "dssim2"] + [k for k in LPIPS_KEYS if all(k in r for r in results)]
     out = {k: float(sum(r[k] * r["images"] for r in results) / images) for k in keys}
+    for k in REGION_KEYS:  # each segment's own dynamic mask (over its frames); None where it had none
+        have = [r for r in results if r.get(k) is not None]
+        out[k] = float(sum(r[k] * r["images"] for r in have) / sum(r["images"] for r in have)) if have else None
     seconds = sum(r["images"] / r["fps"] for r in results if r["fps"] > 0)
     cameras = sorted({c for r in results for c in r["cameras"]})
     return {**out, "fps": images / seconds if seconds > 0 else float("inf"), "images": images, "cameras": cameras}

@@ -30,7 +30,13 @@ import numpy as np
 from stg_runtime.atomic import write_atomic
 from stg_runtime.camera import Camera
 
-__all__ = ["SyntheticScene", "write_n3v", "OBJECT_NAMES", "llff_pose"]
+from .data.dataset import Dataset
+
+__all__ = ["SyntheticScene", "write_n3v", "OBJECT_NAMES", "llff_pose", "NOVEL_VIEWS", "novel_view_dataset"]
+
+#: Rig positions (x, y world units from cam00) of two novel views inside the default 12-camera rig
+#: (which spans x in [-0.8, 0.8], y in [-0.3, 0.3]), between its cameras.
+NOVEL_VIEWS = ((0.2, 0.15), (-0.6, -0.15))
 
 #: Object names in id order (`SyntheticScene.object_ids` returns these indices; -1 is the room).
 OBJECT_NAMES = ("static_box", "shiny_sphere", "moving_sphere", "rotating_box", "fader")
@@ -211,25 +217,30 @@ class SyntheticScene:
         principal point at the image centre."""
         if num_cameras < 1:
             raise ValueError("num_cameras must be at least 1")
-        focal = 0.9 * width if focal is None else float(focal)
         grid = [(i, j) for i in range(-4, 5) for j in range(-8, 9)]
         grid.sort(key=lambda ij: (round(np.hypot(ij[1] * spacing[0], 1.6 * ij[0] * spacing[1]), 9),
                                   round(np.arctan2(ij[0], ij[1]) % (2 * np.pi), 9)))
         if num_cameras > len(grid):
             raise ValueError(f"at most {len(grid)} cameras")
+        return [self.rig_camera(j * spacing[0], i * spacing[1], width, height, focal, name=f"cam{k:02d}")
+                for k, (i, j) in enumerate(grid[:num_cameras])]
+
+    @staticmethod
+    def rig_camera(x: float, y: float, width: int = 160, height: int = 120, focal: float | None = None,
+                   name: str = "") -> Camera:
+        """A camera of the rig's shape at rig position (x, y) (world units right and down of cam00),
+        on the sphere around the look-at point and looking at it; positions between the rig's cameras
+        give novel views inside the rig. focal: in pixels, default 0.9 x width."""
+        focal = 0.9 * width if focal is None else float(focal)
         dist = np.linalg.norm(TARGET)
-        cams = []
-        for k, (i, j) in enumerate(grid[:num_cameras]):
-            x, y = j * spacing[0], i * spacing[1]
-            eye = np.array([x, y, dist - np.sqrt(dist * dist - x * x - y * y)])  # on the sphere around the target
-            forward = (TARGET - eye) / np.linalg.norm(TARGET - eye)
-            right = np.cross([0.0, 1.0, 0.0], forward)  # world y is down
-            right /= np.linalg.norm(right)
-            R = np.stack([right, np.cross(forward, right), forward])  # rows: camera x, y (down), z
-            w2c = np.eye(4)
-            w2c[:3, :3], w2c[:3, 3] = R, -R @ eye
-            cams.append(Camera(focal, focal, width / 2, height / 2, width, height, w2c, name=f"cam{k:02d}"))
-        return cams
+        eye = np.array([x, y, dist - np.sqrt(dist * dist - x * x - y * y)])  # on the sphere around the target
+        forward = (TARGET - eye) / np.linalg.norm(TARGET - eye)
+        right = np.cross([0.0, 1.0, 0.0], forward)  # world y is down
+        right /= np.linalg.norm(right)
+        R = np.stack([right, np.cross(forward, right), forward])  # rows: camera x, y (down), z
+        w2c = np.eye(4)
+        w2c[:3, :3], w2c[:3, 3] = R, -R @ eye
+        return Camera(focal, focal, width / 2, height / 2, width, height, w2c, name=name)
 
     # -- ray tracing -----------------------------------------------------------------------------
     def _solids(self, t: float):
@@ -505,3 +516,15 @@ def write_n3v(out_dir, scene: SyntheticScene, num_cameras: int = 12, num_frames:
                 video_codec=VIDEO_CODEC, png=bool(png), held_out="cam00")
     write_atomic(out / "scene.json", json.dumps(meta, indent=2) + "\n")
     return cams
+
+
+def novel_view_dataset(scene: SyntheticScene, num_frames: int, fps: float, width: int = 160, height: int = 120,
+                       positions=NOVEL_VIEWS, focal: float | None = None, supersample: int = 1) -> Dataset:
+    """Ground truth at novel views: a Dataset (in memory, uint8 frames rounded as the PNG frames are)
+    of `scene` rendered at frames k / fps, k < num_frames, by rig cameras at `positions` (rig_camera;
+    named "novel0", ...), every one of them a test camera. Evaluate a model trained on the scene's rig
+    with it (stg_train.metrics.evaluate_images, evaluate_player)."""
+    cams = [scene.rig_camera(x, y, width, height, focal, name=f"novel{k}") for k, (x, y) in enumerate(positions)]
+    frames = np.stack([np.stack([_to_uint8(scene.render(cam, k / fps, supersample=supersample))
+                                 for k in range(num_frames)]) for cam in cams])
+    return Dataset(cams, frames, fps, test_cameras=range(len(cams)))

@@ -46,7 +46,8 @@ class TrainConfig:
     (stg_train.data.volume) or "combined" (SfM points plus view-volume samples where they leave holes);
     depth_candidates: photo-consistency depth search of the view-volume points (0: uniform depths; see
     stg_train.data.volume.sample_view_volume); static: freeze the time terms (ablation); lr_scale: multiplies every
-    reference learning rate; schedule: Schedule field overrides (iterations of this run) on top of the
+    reference learning rate; stretch_rates: the motion and rotation velocities' rates stretched to the
+    run's length (params.LearningRates.stretched; False: the reference's 30k-step rates); schedule: Schedule field overrides (iterations of this run) on top of the
     reference schedule stretched to `iterations`; thresholds: Thresholds field overrides; seed: numpy /
     torch / python seeds; device: "cpu" or "cuda"; splatter: the rasteriser backend, "numba", "torch",
     "gsplat" or "auto" (stg_train.render.rasterize and resolve_backend: numba on the CPU, gsplat on CUDA
@@ -65,6 +66,7 @@ class TrainConfig:
     init_every: int = 1
     static: bool = False
     lr_scale: float = 1.0
+    stretch_rates: bool = True
     schedule: dict = field(default_factory=dict)
     thresholds: dict = field(default_factory=dict)
     seed: int = 0
@@ -109,6 +111,8 @@ class Trainer:
         self.device = torch.device(config.device)
         self.extent = extent_of([dataset.cameras[i] for i in dataset.train_cameras])
         self.lr = LearningRates().scaled(config.lr_scale)
+        if config.stretch_rates:
+            self.lr = self.lr.stretched(config.iterations)
         self.schedule = Schedule.scaled(config.iterations, **config.schedule)
         self.thresholds = Thresholds(**config.thresholds)
         self._rays: dict[int, Tensor] = {}

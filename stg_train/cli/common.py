@@ -73,11 +73,18 @@ def dataset_options(args) -> dict:
 
 
 def format_table(figures: dict, file_bytes: int, gaussians: int | None = None) -> str:
-    """The held-out figures (stg_train.metrics.HELDOUT_KEYS, LPIPS where computed), size and Gaussian
-    count, one per line."""
+    """The held-out figures (stg_train.metrics.HELDOUT_KEYS, the dynamic / static REGION_KEYS and LPIPS
+    where computed), size and Gaussian count, one per line."""
     rows = [("PSNR (dB)", f"{figures['psnr']:.2f}"), ("SSIM", f"{figures['ssim']:.4f}"),
             ("DSSIM1", f"{figures['dssim1']:.4f}"), ("DSSIM2", f"{figures['dssim2']:.4f}"),
             ("render FPS", f"{figures['fps']:.1f}"), ("model size (MB)", f"{file_bytes / 1e6:.2f}")]
+    if figures.get("dynamic_fraction") is not None:
+        def pair(key, fmt):
+            return " / ".join("-" if figures.get(f"{r}_{key}") is None else format(figures[f"{r}_{key}"], fmt)
+                              for r in ("dynamic", "static"))
+        rows += [("PSNR dynamic / static (dB)", pair("psnr", ".2f")), ("SSIM dynamic / static", pair("ssim", ".4f")),
+                 ("dynamic pixels", f"{100 * figures['dynamic_fraction']:.1f}% (ground truth changes by more "
+                                    f"than {figures['dynamic_threshold']:g})")]
     for key, label in (("lpips_alex", "LPIPS (AlexNet)"), ("lpips_vgg", "LPIPS (VGG)")):
         if key in figures:
             rows.append((label, f"{figures[key]:.4f}"))

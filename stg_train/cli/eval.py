@@ -11,7 +11,7 @@ from stg_runtime.format import FormatError
 from stg_runtime.player import Player, RenderError
 
 from ..data import DataError, load_dataset
-from ..metrics import evaluate_player, heldout, lpips_models
+from ..metrics import DYNAMIC_THRESHOLD, evaluate_player, heldout, lpips_models
 from ..pipeline import model_frames
 from .common import add_dataset_options, dataset_options, error, format_table
 
@@ -21,7 +21,11 @@ EPILOG = """Renders the held-out camera(s) of DATA (cam00 for N3V; --test-camera
 and compares with the ground truth: PSNR (dB), SSIM (scikit-image, data_range 1), DSSIM1 = (1 - SSIM)/2
 with data_range 1 and DSSIM2 with data_range 2 (the paper's Sec. 6.1), LPIPS with AlexNet and VGG (the
 optional lpips package: python -m pip install -e ".[lpips]"; its backbones download on first use; a
-line on stderr says why when it is left out), render FPS, model size."""
+line on stderr says why when it is left out), render FPS, model size.
+
+PSNR and SSIM are also given apart for the dynamic pixels (those whose ground truth changes over the
+evaluated frames by more than --dynamic-threshold in some colour channel: moving objects, what appears
+or vanishes, their shadows) and the static rest; docs/dynamic.md explains the measure."""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -31,6 +35,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("data", metavar="DATA", help="the dataset folder it was trained on (any layout of stg-train)")
     p.add_argument("--json", metavar="PATH", help="also write the figures (and per-frame values) as JSON")
     add_dataset_options(p)
+    p.add_argument("--dynamic-threshold", type=float, default=DYNAMIC_THRESHOLD, metavar="X",
+                   help="a pixel is dynamic when its ground truth changes by more than X (colour values in "
+                        f"[0, 1]) over the frames (default {DYNAMIC_THRESHOLD:g})")
     p.add_argument("--no-lpips", action="store_true",
                    help="skip LPIPS (computed with AlexNet and VGG when the optional lpips package works)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
@@ -56,7 +63,7 @@ def main(argv=None) -> int:
     if why:
         print(f"{PROG}: {why}", file=sys.stderr)
     try:
-        result = evaluate_player(player, dataset, frames=frames, lpips=lpips)
+        result = evaluate_player(player, dataset, frames=frames, lpips=lpips, threshold=args.dynamic_threshold)
     except RenderError as e:
         return error(PROG, str(e))
     size = Path(args.model).stat().st_size

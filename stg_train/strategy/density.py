@@ -33,6 +33,26 @@ class Thresholds:
     max_world_scale: float = 0.1  # x extent; pruned when bigger, after the first opacity reset
     reset_opacity: float = 0.01
     random_t_center: bool = True  # cloned / split Gaussians get a uniform random temporal centre
+    # a step counts in a Gaussian's mean gradient only when its temporal opacity factor
+    # exp(-(dt / s_t)^2) at the step's time is above this (0: every step it is on screen, the reference)
+    min_temporal_opacity: float = 0.0
+    # with random_t_center: re-expand the new Gaussians' motion and rotation about their new temporal
+    # centre, so that they keep their parent's trajectory (False: xyz and the coefficients stay, which
+    # shifts the trajectory in time by the change of centre, as the reference does)
+    recentre: bool = False
+
+
+def recentred(raw: dict[str, Tensor], t_center: Tensor) -> dict[str, Tensor]:
+    """xyz, motion, rotation of Gaussians `raw` (stg_train.raw's names) expanded about new temporal
+    centres t_center (K, 1) so that position(t) and the unnormalised rotation(t) stay the same
+    functions of t: with d = new - old centre, the cubic x + a dt + b dt^2 + c dt^3 becomes
+    (x + a d + b d^2 + c d^3) + (a + 2 b d + 3 c d^2) dt' + (b + 3 c d) dt'^2 + c dt'^3, and q + omega dt
+    becomes (q + omega d) + omega dt'. (The time features, dt x f, cannot be re-expanded and stay.)"""
+    d = t_center - raw["t_center"]
+    a, b, c = raw["motion"][:, 0:3], raw["motion"][:, 3:6], raw["motion"][:, 6:9]
+    return {"xyz": raw["xyz"] + d * (a + d * (b + d * c)),
+            "motion": torch.cat([a + d * (2 * b + 3 * d * c), b + 3 * d * c, c], dim=1),
+            "rotation": raw["rotation"] + d * raw["omega"]}
 
 
 class DensityControl(Strategy):
@@ -64,9 +84,10 @@ class DensityControl(Strategy):
         elif short < 0:
             raise RuntimeError("DensityControl: Gaussians were removed outside DensityControl")
 
-    def accumulate(self, renders: list) -> None:
+    def accumulate(self, renders: list, present=None) -> None:
         """Add one step's statistics. renders: (camera, splat.RenderOutput) for every view of the batch;
-        the per-view screen gradients are summed (the loss averages the views), then normed."""
+        the per-view screen gradients are summed (the loss averages the views), then normed. present:
+        optional (N,) bool on the CPU, the Gaussians that exist at the step's time (others do not count)."""
         grad, seen, radius = None, None, None
         for camera, out in renders:
             g = out.means2d.grad
@@ -82,6 +103,8 @@ class DensityControl(Strategy):
             return
         self._fit(grad.shape[0])
         norm = grad.norm(dim=-1)
+        if present is not None:
+            seen = seen & present
         self.grad_sum[seen] += norm[seen]
         self.grad_count[seen] += 1
         self.max_radius[seen] = torch.maximum(self.max_radius[seen], radius[seen])
@@ -93,7 +116,7 @@ class DensityControl(Strategy):
         s = self.schedule
         self._fit(params.count)
         if step <= s.prune_until or self.rounds_done < s.densify_rounds:
-            self.accumulate(context.renders)
+            self.accumulate(context.renders, self._present(params, context.tau))
         if step > s.refine_start and step % s.refine_every == 0:
             if self.rounds_done < s.densify_rounds:
                 self.densify_and_prune(params, optimizer, step)
@@ -106,6 +129,16 @@ class DensityControl(Strategy):
             xyz = params["xyz"].detach().cpu()
             inside = ((xyz >= self.box[0]) & (xyz <= self.box[1])).all(1)
             self._keep(params, optimizer, inside.to(params.device))
+
+    def _present(self, params: STGParams, tau: float) -> Tensor | None:
+        """(N,) bool on the CPU: temporal opacity factor at tau above thresholds.min_temporal_opacity
+        (None when that is 0: every Gaussian counts)."""
+        if self.thresholds.min_temporal_opacity <= 0:
+            return None
+        with torch.no_grad():
+            dt = tau - params["t_center"].detach().reshape(-1)
+            factor = torch.exp(-(dt / torch.exp(params["t_scale_raw"].detach().reshape(-1))) ** 2)
+        return (factor > self.thresholds.min_temporal_opacity).cpu()
 
     # -- operations ------------------------------------------------------------------------------------
     def _keep(self, params, optimizer, keep: Tensor) -> None:
@@ -159,7 +192,10 @@ class DensityControl(Strategy):
             new = {k: torch.cat([new[k], children[k]]) for k in raw}
         count_new = next(iter(new.values())).shape[0]
         if th.random_t_center and count_new:
-            new["t_center"] = torch.rand(count_new, 1).to(dev)
+            t_center = torch.rand(count_new, 1).to(dev)
+            if th.recentre:
+                new.update(recentred(new, t_center))
+            new["t_center"] = t_center
         append_gaussians(params, optimizer, new)
         self._fit(params.count)  # the new Gaussians have no statistics yet
         prune = self._prune_mask(params, step, big=True)

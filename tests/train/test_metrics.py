@@ -84,9 +84,12 @@ def test_evaluation_means_and_held_out_keys(monkeypatch):
     result = metrics.evaluate_player(Player(), Dataset(), lpips=models)
     np.testing.assert_allclose([r["lpips_alex"] for r in result["per_frame"]], [0.0, 0.2, 0.4], atol=1e-6)
     assert result["lpips_alex"] == pytest.approx(0.2, abs=1e-6) and result["lpips_vgg"] == pytest.approx(2.0, abs=1e-5)
-    assert set(metrics.heldout(result)) == set(metrics.HELDOUT_KEYS + metrics.LPIPS_KEYS)
+    assert set(metrics.heldout(result)) == set(metrics.HELDOUT_KEYS + metrics.REGION_KEYS + metrics.LPIPS_KEYS)
     plain = metrics.evaluate_player(Player(), Dataset())
-    assert set(metrics.heldout(plain)) == set(metrics.HELDOUT_KEYS)  # no LPIPS: no LPIPS keys
+    assert set(metrics.heldout(plain)) == set(metrics.HELDOUT_KEYS + metrics.REGION_KEYS)  # no LPIPS: no LPIPS keys
+    # the ground truth never changes: no dynamic pixel, so no dynamic figures
+    assert plain["dynamic_fraction"] == 0 and plain["dynamic_psnr"] is None and plain["dynamic_ssim"] is None
+    assert plain["static_psnr"] == pytest.approx(plain["psnr"])
 
 
 def test_psnr_and_dssim():

@@ -168,3 +168,17 @@ def test_knn_extent_and_position_rate():
     assert position_lr(lr, 2.0, 0, 100) == pytest.approx(2.0 * lr.xyz_init)
     assert position_lr(lr, 2.0, 100, 100) == pytest.approx(2.0 * lr.xyz_final)
     assert position_lr(lr, 2.0, 50, 100) == pytest.approx(2.0 * np.sqrt(lr.xyz_init * lr.xyz_final))
+
+
+def test_velocity_rates_stretch_to_the_run_length():
+    lr = LearningRates()
+    short = lr.stretched(3000)  # a tenth of the reference's 30k steps: ten times the velocity rates
+    assert short.motion_factor == pytest.approx(10 * lr.motion_factor) and short.omega == pytest.approx(10 * lr.omega)
+    assert {k: v for k, v in vars(short).items() if k not in ("motion_factor", "omega")} == \
+        {k: v for k, v in vars(lr).items() if k not in ("motion_factor", "omega")}
+    assert lr.stretched(30000) == lr and lr.stretched(60000) == lr  # never below the reference's
+    assert lr.stretched(10).omega == pytest.approx(50 * lr.omega)  # nor above 50 times them
+    params = STGParams.from_points(np.zeros((4, 3)) + [0, 0, 4], np.full((4, 3), 0.5), np.zeros(4), "lite")
+    groups = {g["name"]: g["lr"] for g in params.param_groups(short, 2.0)}
+    assert groups["motion"] == pytest.approx(2.0 * lr.xyz_init * lr.motion_factor * 10)
+    assert groups["xyz"] == pytest.approx(2.0 * lr.xyz_init)

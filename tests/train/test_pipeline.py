@@ -137,9 +137,12 @@ def test_cli_trains_and_evaluates(scene_dir, tmp_path, capsys):
     capsys.readouterr()
     assert eval_main([str(out / "model.stg"), str(scene_dir), "--json", str(tmp_path / "eval.json"), "--quiet"]) == 0
     printed = capsys.readouterr().out
-    assert "PSNR" in printed and "DSSIM2" in printed
+    assert "PSNR" in printed and "DSSIM2" in printed and "PSNR dynamic / static (dB)" in printed
     figures = json.loads((tmp_path / "eval.json").read_text())
     assert abs(figures["psnr"] - metrics["heldout"]["psnr"]) < 1e-6
+    for key in ("dynamic_psnr", "static_psnr", "dynamic_ssim", "static_ssim"):  # the scene moves: both regions
+        assert abs(figures[key] - metrics["heldout"][key]) < 1e-6
+    assert 0.05 < figures["dynamic_fraction"] < 0.6 and figures["dynamic_threshold"] == 0.1
     assert len(figures["per_frame"]) == SCENE["num_frames"]
 
 
@@ -193,3 +196,17 @@ def test_cli_usage_errors(tmp_path, capsys):
     assert "nowhere" in capsys.readouterr().err
     code = train_main([str(tmp_path), "--out", str(tmp_path / "o"), "--splatter", "gsplat", "--quiet"])
     assert code == 2 and "gsplat" in capsys.readouterr().err
+
+
+def test_velocity_rates_follow_the_run_length(dataset):
+    def rates(**cfg):
+        trainer = Trainer(dataset, TrainConfig(num_points=100, depth_candidates=0, **cfg))
+        return {g["name"]: g["lr"] for g in trainer.optimizer.param_groups}
+
+    reference = rates(iterations=3000, stretch_rates=False)
+    stretched = rates(iterations=3000)
+    for name in ("motion", "omega"):
+        assert stretched[name] == pytest.approx(10 * reference[name])  # 30000 / 3000
+    assert {k: v for k, v in stretched.items() if k not in ("motion", "omega")} == \
+        {k: v for k, v in reference.items() if k not in ("motion", "omega")}
+    assert rates(iterations=30000)["motion"] == pytest.approx(reference["motion"])

@@ -172,3 +172,21 @@ def test_cli_help_and_bad_size(capsys):
     with pytest.raises(SystemExit) as e:
         synth_main(["out", "--size", "big"])
     assert e.value.code == 2
+
+
+def test_novel_views_are_rig_cameras_between_the_cameras():
+    from stg_train.synthetic import NOVEL_VIEWS, novel_view_dataset
+
+    scene = SyntheticScene(seed=0, duration=2 / 30)
+    rig = scene.cameras(12, 32, 24)
+    cam01 = next(c for c in rig if np.allclose(c.center[:2], [0.4, 0.0]) or np.allclose(c.center[:2], [-0.4, 0.0]))
+    ds = novel_view_dataset(scene, 2, 30.0, 32, 24, positions=(tuple(cam01.center[:2]),) + NOVEL_VIEWS)
+    assert ds.num_cameras == 3 and ds.test_cameras == [0, 1, 2] and ds.num_frames == 2
+    assert [c.name for c in ds.cameras] == ["novel0", "novel1", "novel2"]
+    np.testing.assert_allclose(ds.cameras[0].world_to_camera, cam01.world_to_camera, atol=1e-12)
+    expected = np.rint(scene.render(cam01, 1 / 30) * 255).astype(np.uint8)
+    np.testing.assert_array_equal(ds.frame(0, 1), expected)
+    xs = [c.center[0] for c in rig]
+    for cam in ds.cameras[1:]:  # inside the rig, and not one of its cameras
+        assert min(xs) < cam.center[0] < max(xs)
+        assert min(np.linalg.norm(cam.center - c.center) for c in rig) > 0.1

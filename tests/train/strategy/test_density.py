@@ -101,3 +101,37 @@ def test_gaussians_removed_behind_its_back_are_an_error():
     dc._fit(20)
     with pytest.raises(RuntimeError, match="removed outside DensityControl"):
         dc._fit(19)
+
+
+def test_gradient_statistics_count_only_gaussians_present_at_the_step_time():
+    params, optimizer, _ = _setup(n=4)
+    _set(params, optimizer, "t_center", torch.tensor([[0.0], [0.5], [0.52], [1.0]]))
+    _set(params, optimizer, "t_scale_raw", torch.full((4, 1), math.log(0.05)))
+    cam = Camera(50, 50, 16, 12, 32, 24, np.eye(4))
+    means2d = torch.zeros(4, 2, requires_grad=True)
+    (means2d * torch.tensor([1.0, 0.0])).sum().backward()  # gradient (1, 0) px for every Gaussian
+    out = RenderOutput(None, None, None, means2d, torch.full((4,), 3), torch.ones(4, dtype=torch.bool))
+    context = StepContext(None, 15, 0.5, [(cam, out)], None, None)
+    for th, counted in ((Thresholds(), [1, 1, 1, 1]), (Thresholds(min_temporal_opacity=0.05), [0, 1, 1, 0])):
+        dc = DensityControl(Schedule(refine_start=1000), 1.0, th)
+        dc.step_post_backward(params, optimizer, 1, context)  # at tau 0.5: dt / s_t = 10, 0, 0.4, 10
+        assert dc.grad_count.tolist() == counted
+        np.testing.assert_allclose(dc.grad_sum.numpy(), 16 * np.array(counted), rtol=1e-6)  # 1 px = 16 NDC units
+
+
+def test_recentred_gaussians_keep_their_trajectory():
+    from stg_train.params import gaussians_at
+    from stg_train.strategy.density import recentred
+
+    params, _, _ = _setup(n=6)
+    gen = torch.Generator().manual_seed(1)
+    raw = {k: v.detach().clone() for k, v in params.raw.items()}
+    raw["motion"] = torch.randn(6, 9, generator=gen)
+    raw["omega"] = torch.randn(6, 4, generator=gen) * 0.3
+    new_t = torch.rand(6, 1, generator=gen)
+    moved = {**raw, **recentred(raw, new_t), "t_center": new_t}
+    for tau in (0.0, 0.3, 0.9):
+        before, after = gaussians_at(raw, tau), gaussians_at(moved, tau)
+        torch.testing.assert_close(after.means, before.means, atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(after.quats, before.quats, atol=1e-5, rtol=1e-5)
+    assert not torch.allclose(gaussians_at({**raw, "t_center": new_t}, 0.3).means, gaussians_at(raw, 0.3).means)
