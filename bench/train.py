@@ -4,10 +4,11 @@ machine: seconds per iteration, training time to reach 25 / 30 dB held-out PSNR,
 Player on the held-out camera, every frame), Gaussian count and file size.
 
     python bench/train.py [--iterations N] [--eval-every K] [--threads 2] [--model full|lite]
-                          [--device cpu|cuda] [--splatter torch|gsplat] [--data DIR] [--out DIR]
+                          [--device cpu|cuda] [--splatter numba|torch|gsplat] [--data DIR] [--out DIR]
 
-On a GPU: `--device cuda` with the built-in torch splatter, or `--device cuda --splatter gsplat` with
-gsplat's kernels (the `[cuda]` extra).
+--splatter auto (the default) is what stg-train picks: numba on the CPU, gsplat on CUDA where
+installed; `--splatter torch` times the reference torch splatter. On a GPU: `--device cuda` with the
+torch splatter, or `--device cuda --splatter gsplat` with gsplat's kernels (the `[cuda]` extra).
 
 Held-out PSNR is measured every K steps with the trainer's renderer over every frame of cam00; the time
 that takes is excluded from the training time. The scene is generated once into --data.
@@ -30,6 +31,7 @@ from stg_train.pipeline import DEMO_TRAINING, ensure_demo_scene
 from stg_train.data import load_n3v
 from stg_train.export import export_trainer
 from stg_train.metrics import evaluate_player
+from stg_train.render import resolve_backend
 from stg_train.trainer import Trainer, TrainConfig
 from stg_runtime.player import Player
 
@@ -42,7 +44,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--model", default="full", choices=["full", "lite"])
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
-    ap.add_argument("--splatter", default="torch", choices=["torch", "gsplat"])
+    ap.add_argument("--splatter", default="auto", choices=["auto", "numba", "torch", "gsplat"])
     ap.add_argument("--data", default=os.path.join(tempfile.gettempdir(), "stg-bench-scene"))
     ap.add_argument("--out", default=None, help="where model.stg and bench.json go (default: a temp folder)")
     args = ap.parse_args()
@@ -52,7 +54,8 @@ def main() -> None:
     ds = load_n3v(ensure_demo_scene(args.data), prefer_png=True)
     out = Path(args.out or tempfile.mkdtemp(prefix="stg-bench-"))
     cfg = TrainConfig(**{**DEMO_TRAINING, "iterations": args.iterations, "num_points": args.points,
-                         "model": args.model, "device": args.device, "splatter": args.splatter})
+                         "model": args.model, "device": args.device,
+                         "splatter": resolve_backend(args.splatter, args.device)})
     print(f"{platform.processor() or platform.machine()}, torch {torch.__version__}, {args.threads} threads; "
           f"{ds}; {cfg.device}, {cfg.splatter} splatter; {cfg.model} model, {cfg.iterations} iterations, {cfg.num_points} initial points", flush=True)
 

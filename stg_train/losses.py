@@ -9,23 +9,30 @@ import torch.nn.functional as F
 from torch import Tensor
 
 
-def _gauss_window(size: int = 11, sigma: float = 1.5, channels: int = 3, device=None, dtype=None) -> Tensor:
+def _gauss_1d(size: int, sigma: float, device=None, dtype=None) -> Tensor:
+    """(size,) normalised Gaussian weights."""
     x = torch.arange(size, dtype=torch.float64) - size // 2
     g = torch.exp(-x * x / (2 * sigma * sigma))
-    g = (g / g.sum()).to(device=device, dtype=dtype)
-    return (g[:, None] * g[None, :]).expand(channels, 1, size, size).contiguous()
+    return (g / g.sum()).to(device=device, dtype=dtype)
+
+
+def _blur(t: Tensor, g: Tensor) -> Tensor:
+    """t (B, C, H, W) filtered with the window g g^T (g: (K,), K odd), zero padding, same size: a row
+    pass then a column pass (the same as one K x K convolution, with 2K instead of K^2 products)."""
+    c, k = t.shape[1], g.shape[0]
+    t = F.conv2d(t, g.view(1, 1, 1, k).expand(c, 1, 1, k), padding=(0, k // 2), groups=c)
+    return F.conv2d(t, g.view(1, 1, k, 1).expand(c, 1, k, 1), padding=(k // 2, 0), groups=c)
 
 
 def ssim(img: Tensor, ref: Tensor, window: int = 11, sigma: float = 1.5) -> Tensor:
     """Mean SSIM of images (B, H, W, 3) in [0, 1], 3DGS's version (Gaussian window, zero padding)."""
     x, y = img.permute(0, 3, 1, 2), ref.permute(0, 3, 1, 2)
     c = x.shape[1]
-    w = _gauss_window(window, sigma, c, x.device, x.dtype)
-    pad = window // 2
-    mu_x, mu_y = F.conv2d(x, w, padding=pad, groups=c), F.conv2d(y, w, padding=pad, groups=c)
-    sxx = F.conv2d(x * x, w, padding=pad, groups=c) - mu_x * mu_x
-    syy = F.conv2d(y * y, w, padding=pad, groups=c) - mu_y * mu_y
-    sxy = F.conv2d(x * y, w, padding=pad, groups=c) - mu_x * mu_y
+    g = _gauss_1d(window, sigma, x.device, x.dtype)
+    # The five local means in one filtering pass: x, y, x^2, y^2, xy.
+    moments = _blur(torch.cat([x, y, x * x, y * y, x * y], 1), g)
+    mu_x, mu_y, exx, eyy, exy = moments.split(c, 1)
+    sxx, syy, sxy = exx - mu_x * mu_x, eyy - mu_y * mu_y, exy - mu_x * mu_y
     c1, c2 = 0.01 ** 2, 0.03 ** 2
     s = ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x ** 2 + mu_y ** 2 + c1) * (sxx + syy + c2))
     return s.mean()

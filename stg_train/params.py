@@ -302,21 +302,20 @@ def position_lr(lr: LearningRates, extent: float, step: int, total: int) -> floa
     return extent * math.exp((1 - frac) * math.log(lr.xyz_init) + frac * math.log(lr.xyz_final))
 
 
-def knn_mean_sq_dist(points: Tensor, k: int = 3, block: int = 2048, rows: int | None = None) -> Tensor:
-    """(N,) mean squared distance of each point to its k nearest other points (blockwise, O(N^2) time);
-    only for the first `rows` points ((rows,) result) when given."""
+def knn_mean_sq_dist(points: Tensor, k: int = 3, rows: int | None = None) -> Tensor:
+    """(N,) float32 mean squared distance of each point of points (N, 3) to its k nearest other points
+    (a k-d tree: O(N log N) time, O(N) memory); only for the first `rows` points ((rows,) result) when
+    given."""
+    from scipy.spatial import cKDTree
+
     n = points.shape[0]
     m = n if rows is None else min(int(rows), n)
     if n <= 1:
         return torch.ones(m)
     k = min(k, n - 1)
-    out = torch.empty(m)
-    p = points.double()
-    for s in range(0, m, block):
-        d = torch.cdist(p[s:min(s + block, m)], p).pow(2)
-        d[torch.arange(d.shape[0]), torch.arange(s, s + d.shape[0])] = float("inf")
-        out[s:s + block] = d.topk(k, largest=False).values.mean(1).float()
-    return out
+    p = points.detach().cpu().double().numpy()
+    dist, _ = cKDTree(p).query(p[:m], k=k + 1)  # the first of each row is the point itself
+    return torch.from_numpy((dist[:, 1:] ** 2).mean(1)).float()
 
 
 def extent_of(cameras) -> float:

@@ -29,7 +29,7 @@ from .data.points import default_method, initial_points
 from .losses import loss_fn
 from .metrics import psnr_of_mse
 from .params import LearningRates, STGParams, extent_of, position_lr, view_inputs
-from .render import rasterize
+from .render import rasterize, resolve_backend
 from .strategy import DensityControl, GuidedSampling, Schedule, StepContext, Strategy, Thresholds
 
 CHECKPOINT_VERSION = 1
@@ -47,8 +47,9 @@ class TrainConfig:
     stg_train.data.volume.sample_view_volume); static: freeze the time terms (ablation); lr_scale: multiplies every
     reference learning rate; schedule: Schedule field overrides (iterations of this run) on top of the
     reference schedule stretched to `iterations`; thresholds: Thresholds field overrides; seed: numpy /
-    torch / python seeds; device: "cpu" or "cuda"; splatter: the rasteriser backend, "torch" or "gsplat"
-    (stg_train.render.rasterize); guided: guided sampling of Gaussians in high-error patches
+    torch / python seeds; device: "cpu" or "cuda"; splatter: the rasteriser backend, "numba", "torch",
+    "gsplat" or "auto" (stg_train.render.rasterize and resolve_backend: numba on the CPU, gsplat on CUDA
+    where it can run, else torch); guided: guided sampling of Gaussians in high-error patches
     (stg_train.strategy.guided, the paper's Sec. 4.4); frozen: time components
     switched off for ablations (params.COMPONENTS: "temporal_opacity", "motion", "rotation",
     "time_features"; `static` freezes them all).
@@ -68,13 +69,15 @@ class TrainConfig:
     seed: int = 0
     device: str = "cpu"
     checkpoint_every: int = 500
-    splatter: str = "torch"
+    splatter: str = "auto"
     guided: bool = True
     frozen: tuple = ()
 
     def for_dataset(self, dataset) -> "TrainConfig":
-        """These settings with the choices left to the dataset made (init None: default_method)."""
-        return self if self.init is not None else replace(self, init=default_method(dataset))
+        """These settings with the choices left open made: init None -> default_method(dataset), splatter
+        "auto" -> resolve_backend(splatter, device)."""
+        config = self if self.init is not None else replace(self, init=default_method(dataset))
+        return config if config.splatter != "auto" else replace(config, splatter=resolve_backend("auto", config.device))
 
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":

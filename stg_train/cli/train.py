@@ -63,10 +63,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--iterations", type=positive_int, default=None, metavar="N",
                    help=f"optimisation steps; the density-control schedule is stretched to N (default {d.iterations}, "
                         "the demo's own default with --demo)")
-    p.add_argument("--splatter", choices=["auto", "torch", "gsplat"], default="auto",
-                   help="rasteriser: torch = the built-in differentiable splatter (CPU and CUDA); gsplat = the "
-                        "gsplat library's CUDA kernels (pip install -e \".[cuda]\"; needs --device cuda); "
-                        "auto = gsplat when it can run, else torch (default auto)")
+    p.add_argument("--splatter", choices=["auto", "numba", "torch", "gsplat"], default="auto",
+                   help="rasteriser: numba = the fast CPU splatter (numba kernels with a backward pass); torch = "
+                        "the readable reference splatter in plain torch (CPU and CUDA); gsplat = the gsplat "
+                        "library's CUDA kernels (pip install -e \".[cuda]\"; needs --device cuda); auto = numba "
+                        "on the CPU, gsplat on CUDA when it can run, else torch (default auto)")
     p.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
                    help="where the parameters live and rendering runs (default cpu)")
     p.add_argument("--resume", action="store_true",

@@ -1,11 +1,13 @@
 """Differentiable rendering for training: one `rasterize`, two backends.
 
     rasterize(means, quats, scales, opacities, features, camera, backend="torch") -> RenderOutput
-    resolve_backend(name, device) -> "torch" or "gsplat"
 
-Backends: "torch" (stg_train.render.torch_splat, the readable reference, any device) and "gsplat"
-(stg_train.render.gsplat_backend, gsplat's CUDA kernels; imported only when used). Both follow
-formats/stg-v1.md, section 3, and return the same RenderOutput.
+    resolve_backend(name, device) -> "numba", "torch" or "gsplat"
+
+Backends: "numba" (stg_train.render.numba_splat, the CPU training splatter: numba kernels with a
+backward pass), "torch" (stg_train.render.torch_splat, the readable reference, any device) and "gsplat"
+(stg_train.render.gsplat_backend, gsplat's CUDA kernels). numba and gsplat are imported only when used.
+All follow formats/stg-v1.md, section 3, and return the same RenderOutput.
 """
 from __future__ import annotations
 
@@ -14,7 +16,7 @@ from torch import Tensor
 from .output import RenderOutput
 from .torch_splat import rasterize_torch
 
-BACKENDS = ("torch", "gsplat")
+BACKENDS = ("numba", "torch", "gsplat")
 
 __all__ = ["BACKENDS", "RenderOutput", "rasterize", "resolve_backend"]
 
@@ -24,9 +26,14 @@ def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, f
     """Render M Gaussians (means (M, 3) world, quats (M, 4) wxyz, scales (M, 3) standard deviations,
     opacities (M,) or (M, 1), features (M, C); one device and float dtype) seen by `camera` (a
     stg_runtime Camera), differentiably. options: the torch backend's speed and memory settings
-    (rasterize_torch's tile_size, chunk, max_elements, checkpoint); the result never depends on them."""
+    (rasterize_torch's tile_size, chunk, max_elements, checkpoint); the result never depends on them.
+    The numba backend takes CPU tensors only."""
     if backend == "torch":
         return rasterize_torch(means, quats, scales, opacities, features, camera, **options)
+    if backend == "numba":
+        from .numba_splat import rasterize_numba
+
+        return rasterize_numba(means, quats, scales, opacities, features, camera)
     if backend == "gsplat":
         from .gsplat_backend import rasterize_gsplat
 
@@ -35,13 +42,17 @@ def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, f
 
 
 def resolve_backend(name: str, device: str) -> str:
-    """The backend to train with, "torch" or "gsplat": "auto" picks gsplat when it can run on `device`
-    (installed, CUDA device present), else torch. Raises ValueError with the reason when "gsplat" is
-    asked for explicitly and cannot run."""
+    """The backend to train with on `device` ("cpu" or "cuda"): "auto" picks numba on the CPU and gsplat
+    on CUDA when it can run (installed, device present), else torch. Raises ValueError with the reason
+    when a backend asked for explicitly cannot run there."""
+    if name not in ("auto",) + BACKENDS:
+        raise ValueError(f"splatter must be auto, {', '.join(BACKENDS)}, got {name!r}")
     if name == "torch":
         return "torch"
-    if name not in ("auto", "gsplat"):
-        raise ValueError(f"splatter must be auto, torch or gsplat, got {name!r}")
+    if device == "cpu" and name in ("auto", "numba"):
+        return "numba"
+    if name == "numba":
+        raise ValueError(f"--splatter numba runs on the CPU, not on {device}; use --splatter gsplat, torch or auto")
     from .gsplat_backend import unavailable_reason
 
     reason = unavailable_reason(device)

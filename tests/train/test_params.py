@@ -143,6 +143,18 @@ def test_new_rows_take_their_scale_from_existing_neighbours():
     torch.testing.assert_close(torch.sigmoid(new["opacity_logit"]), torch.tensor([[0.25]]))
 
 
+def test_knn_matches_brute_force():
+    rng = np.random.default_rng(0)
+    pts = rng.normal(size=(300, 3))
+    pts[10] = pts[11]  # a duplicate counts as a neighbour at distance 0
+    d2 = ((pts[:, None] - pts[None]) ** 2).sum(-1)
+    np.fill_diagonal(d2, np.inf)
+    want = np.sort(d2, 1)[:, :3].mean(1)
+    got = knn_mean_sq_dist(torch.tensor(pts, dtype=torch.float32).double(), k=3)
+    np.testing.assert_allclose(got.numpy(), want, rtol=1e-6)
+    np.testing.assert_allclose(knn_mean_sq_dist(torch.tensor(pts), k=3, rows=40).numpy(), want[:40], rtol=1e-6)
+
+
 def test_knn_extent_and_position_rate():
     points = torch.tensor([[0.0, 0, 0], [1, 0, 0], [3, 0, 0]])
     torch.testing.assert_close(knn_mean_sq_dist(points, k=1), torch.tensor([1.0, 1.0, 4.0]))

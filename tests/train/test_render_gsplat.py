@@ -83,14 +83,15 @@ def test_density_control_reads_batched_screen_gradients():
 
 def test_backend_selection(monkeypatch):
     monkeypatch.setitem(sys.modules, "gsplat", None)  # not installed
-    assert resolve_backend("auto", "cpu") == "torch"
+    assert resolve_backend("auto", "cpu") == "numba"
+    assert resolve_backend("auto", "cuda") == "torch"
     assert resolve_backend("torch", "cuda") == "torch"
     with pytest.raises(ValueError, match="not installed"):
         resolve_backend("gsplat", "cuda")
     monkeypatch.setitem(sys.modules, "gsplat", types.ModuleType("gsplat"))  # installed
     with pytest.raises(ValueError, match="--device cuda"):
         resolve_backend("gsplat", "cpu")
-    assert resolve_backend("auto", "cpu") == "torch"
+    assert resolve_backend("auto", "cpu") == "numba"
     if not torch.cuda.is_available():
         with pytest.raises(ValueError, match="no CUDA device"):
             resolve_backend("gsplat", "cuda")

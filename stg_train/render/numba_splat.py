@@ -1,0 +1,116 @@
+"""The CPU training splatter: EWA projection in torch, tiles and compositing in numba, with a backward pass.
+
+    rasterize_numba(means, quats, scales, opacities, features, camera) -> RenderOutput
+
+Same rules (formats/stg-v1.md, section 3) and same outputs as the torch splatter
+(stg_train.render.torch_splat), whose `project` it shares: the per-Gaussian projection is a few
+vectorised torch operations and autograd differentiates it. The per-pixel work, where the torch
+splatter spends its time and memory, is stg_train.render.numba_kernels: the forward pass composites
+tile by tile and keeps two numbers per pixel; the backward pass walks each tile's list back to front.
+Memory is proportional to Gaussians plus pixels, never to their product. The depth order and the tile
+lists come from the runtime's splatter (stg_runtime.splat_cpu), so the forward pass draws what the
+Player draws. CPU tensors only.
+"""
+from __future__ import annotations
+
+import numba
+import numpy as np
+import torch
+from torch import Tensor
+
+from stg_runtime.splat_cpu import _bin as bin_tiles
+from stg_runtime.splat_cpu import _sort_by_depth as sort_by_depth
+
+from . import numba_kernels as kernels
+from .output import RenderOutput
+from .torch_splat import project
+
+class _Tiles:
+    """What the backward pass needs from the forward pass, beside the inputs (numpy arrays)."""
+
+    def __init__(self, rects, tile_start, tile_ids, tile_order, tiles_x, t_final, n_last):
+        self.rects, self.tile_start, self.tile_ids, self.tile_order = rects, tile_start, tile_ids, tile_order
+        self.tiles_x, self.t_final, self.n_last = tiles_x, t_final, n_last
+
+
+def _numpy(t: Tensor) -> np.ndarray:
+    return np.ascontiguousarray(t.detach().numpy())
+
+
+class Composite(torch.autograd.Function):
+    """Composite projected Gaussians: (means2d (M, 2), conic (M, 3), opacity (M,), features (M, C),
+    depth (M,)) -> (features (H, W, C), alpha (H, W), sum w z (H, W), visible (M,) bool), differentiable
+    in all five inputs. radius (M,) int64 and valid (M,) bool come from the projection and carry no
+    gradient; visible: valid and the 3-sigma footprint holds a pixel of the image."""
+
+    @staticmethod
+    def forward(ctx, means2d, conic, opacity, features, depth, radius, valid, width, height):
+        arrays = [_numpy(x) for x in (means2d, conic, opacity, features, depth)]
+        m2d, con, opa, feat, dep = arrays
+        rects, tiles, visible = kernels.rectangles(m2d, con, opa, radius.numpy(), valid.numpy(), width, height)
+        order = sort_by_depth(tiles, dep.astype(np.float64))
+        tiles_x, tiles_y = -(-width // kernels.TILE), -(-height // kernels.TILE)
+        padded = (tiles_y * kernels.TILE, tiles_x * kernels.TILE)  # the kernels work on whole tiles
+        tile_start, tile_ids, tile_order = bin_tiles(order, tiles, tiles_x, tiles_y)
+        out = np.zeros((feat.shape[1] + 2, *padded), feat.dtype)
+        trans = np.ones(padded, feat.dtype)
+        n_last = np.zeros(padded, np.int32)
+        with numba.parallel_chunksize(1):
+            kernels.forward(m2d, con, opa, feat, dep, rects, tile_start, tile_ids, tile_order, tiles_x,
+                            kernels.constants(feat.dtype), out, trans, n_last)
+        ctx.arrays = arrays
+        ctx.tiles = _Tiles(rects, tile_start, tile_ids, tile_order, tiles_x, np.abs(trans), n_last)
+        ctx.size = (height, width)
+        visible = torch.from_numpy(visible)
+        ctx.mark_non_differentiable(visible)
+        out = torch.from_numpy(out)
+        out = out[:, :height, :width]
+        return out[:-2].permute(1, 2, 0), out[-2], out[-1], visible
+
+    @staticmethod
+    def backward(ctx, grad_features, grad_alpha, grad_depth_sum, _grad_visible):
+        m2d, con, opa, feat, dep = ctx.arrays
+        tl = ctx.tiles
+        height, width = ctx.size
+        channels = feat.shape[1]
+        grad_out = np.zeros((channels + 2, *tl.t_final.shape), feat.dtype)
+        if grad_features is not None:
+            grad_out[:channels, :height, :width] = grad_features.detach().permute(2, 0, 1).numpy()
+        for k, g in ((channels, grad_alpha), (channels + 1, grad_depth_sum)):
+            if g is not None:
+                grad_out[k, :height, :width] = g.detach().numpy()
+        n_parts = max(1, min(64, 4 * numba.get_num_threads()))
+        parts, part_start = kernels.partitions(tl.tile_order, tl.tile_start, n_parts)
+        grads = np.zeros((n_parts, m2d.shape[0], kernels.GRAD_FEATURES + channels), feat.dtype)
+        with numba.parallel_chunksize(1):
+            kernels.backward(m2d, con, opa, feat, dep, tl.rects, tl.tile_start, tl.tile_ids, tl.tiles_x,
+                             kernels.constants(feat.dtype), tl.t_final.copy(), tl.n_last, grad_out, parts,
+                             part_start, grads)
+        total = torch.from_numpy(grads.sum(0))
+        return (total[:, 0:2], total[:, 2:5], total[:, kernels.GRAD_OPACITY], total[:, kernels.GRAD_FEATURES:],
+                total[:, kernels.GRAD_DEPTH], None, None, None, None)
+
+
+def rasterize_numba(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, features: Tensor,
+                    camera) -> RenderOutput:
+    """Render M Gaussians with the rules of formats/stg-v1.md, section 3, differentiably, on the CPU.
+
+    means (M, 3) world positions; quats (M, 4) wxyz (normalised here); scales (M, 3) standard deviations
+    (world units); opacities (M,) or (M, 1) in [0, 1]; features (M, C); camera: a
+    stg_runtime.camera.Camera (fixed, no gradient). CPU tensors of one float dtype (float32 to train,
+    float64 for gradient checks). Returns a RenderOutput like the torch splatter's."""
+    if means.device.type != "cpu":
+        raise ValueError(f"the numba splatter runs on the CPU; got tensors on {means.device}")
+    W, H = camera.width, camera.height
+    opacities = opacities.reshape(-1)
+    features = features.reshape(opacities.shape[0], features.shape[-1])
+    proj = project(means, quats, scales, opacities, camera)
+    means2d = proj.means2d
+    if means2d.requires_grad:
+        means2d.retain_grad()
+    feats, alpha, depth_sum, visible = Composite.apply(means2d, proj.conic, opacities, features, proj.depth,
+                                                       proj.radius, proj.valid, W, H)
+    radii = torch.where(visible, proj.radius, torch.zeros_like(proj.radius))
+    depth = torch.where(alpha > 0, depth_sum / torch.where(alpha > 0, alpha, torch.ones_like(alpha)),
+                        torch.zeros_like(alpha))
+    return RenderOutput(feats, alpha, depth, means2d, radii, visible)
