@@ -24,16 +24,19 @@ measured, on the CPU and, where there is one, on a CUDA GPU.
 
 Memory: "peak" is the process's VmHWM (/proc/self/status), reset before each phase
 (/proc/self/clear_refs); it counts the frame cache's memory-mapped pages that are resident (page
-cache, reclaimable), so the anonymous part (RssAnon) at the end of each phase is printed beside it.
+cache, reclaimable), so the anonymous memory's peak (RssAnon sampled every 10 ms) and its size at the
+end of each phase are printed beside it.
 """
 from __future__ import annotations
 
 import argparse
 import copy
+import gc
 import json
 import multiprocessing
 import os
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -149,13 +152,40 @@ def rss_anon_gb() -> float:
     return float("nan")
 
 
+class AnonymousPeak(threading.Thread):
+    """The largest RssAnon seen since the last reset, sampled every `interval` seconds (a daemon thread):
+    the process's own memory, without the memory-mapped frame cache's pages that VmHWM also counts."""
+
+    def __init__(self, interval: float = 0.01):
+        super().__init__(daemon=True)
+        self.interval, self.peak = interval, rss_anon_gb()
+
+    def run(self) -> None:
+        while True:
+            self.peak = max(self.peak, rss_anon_gb())
+            time.sleep(self.interval)
+
+    def reset(self) -> None:
+        self.peak = rss_anon_gb()
+
+
+ANONYMOUS = AnonymousPeak()
+
+
+def reset_peaks() -> None:
+    """Start both peaks (VmHWM and the sampled RssAnon) again from the current memory."""
+    reset_peak_rss()
+    ANONYMOUS.reset()
+
+
 def disk_gb(folder: Path) -> float:
     """Bytes allocated on disk under `folder`, in GB."""
     return sum(os.stat(os.path.join(d, f)).st_blocks * 512 for d, _, files in os.walk(folder) for f in files) / 1e9
 
 
 def memory(label: str) -> str:
-    return f"{label}: peak {peak_rss_gb():.2f} GB (VmHWM), anonymous now {rss_anon_gb():.2f} GB"
+    return (f"{label}: peak {peak_rss_gb():.2f} GB (VmHWM), anonymous peak {ANONYMOUS.peak:.2f} GB (RssAnon "
+            f"sampled every 10 ms), anonymous now {rss_anon_gb():.2f} GB")
 
 
 def step_seconds(trainer: Trainer, steps: int, cuda: bool = False) -> float:
@@ -205,6 +235,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=os.cpu_count())
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
+    ANONYMOUS.start()
     cuda = args.device == "cuda" or (args.device == "auto" and torch.cuda.is_available())
     data = Path(args.data)
     print(f"capture: {args.cameras} cameras x {args.frames} frames at {args.width}x{args.height} in {data}; "
@@ -216,7 +247,7 @@ def main() -> None:
     print(f"generate: {time.perf_counter() - t0:.0f} s ({'written' if written else 'reused'}, "
           f"{args.workers} workers), videos {videos:.2f} GB", flush=True)
 
-    reset_peak_rss()
+    reset_peaks()
     spans = [(s.start, s.count) for s in plan_segments(args.frames, args.segment_frames)]
     dataset = load_dataset(data, "n3v", from_video=True, lazy=True).chunked(spans)
     segment = dataset.frame_range(*spans[0])
@@ -229,7 +260,7 @@ def main() -> None:
           flush=True)
     print(memory("  memory while decoding"), flush=True)
 
-    reset_peak_rss()
+    reset_peaks()
     t0 = time.perf_counter()
     base = TrainConfig(num_points=args.gaussians, init="volume", depth_candidates=args.depth_candidates,
                        iterations=args.segment_iterations, checkpoint_every=10**9)
@@ -240,25 +271,29 @@ def main() -> None:
     print(memory("  memory of the initialisation"), flush=True)
 
     if args.cpu:
-        reset_peak_rss()
+        reset_peaks()
         s = step_seconds(trainer, args.steps)
         print(f"CPU numba splatter at {args.width}x{args.height}: {s:.2f} s/step ({trainer.params.count} Gaussians)",
               flush=True)
         print(memory("  memory of the steps"), flush=True)
         del trainer
+        gc.collect()
         small = load_dataset(data, "n3v", downscale=args.torch_downscale, from_video=True, lazy=True).chunked(spans)
         small = small.frame_range(*spans[0])
         small.frame(0, 0)
-        reset_peak_rss()
+        reset_peaks()
         for splatter in ("numba", "torch"):
             t = Trainer(small, TrainConfig(**{**base.__dict__, "splatter": splatter}))
             s = step_seconds(t, args.steps)
             print(f"CPU {splatter} splatter at {small.width}x{small.height}: {s:.2f} s/step", flush=True)
-        print(memory("  memory of the reduced-size steps"), flush=True)
+            print(memory(f"  memory of the {splatter} steps"), flush=True)
+            del t
+            gc.collect()
+            reset_peaks()
     print(f"cache folders after segment 0's training: {cache_folders(dataset)}", flush=True)
 
     if args.whole and len(spans) > 1:
-        reset_peak_rss()
+        reset_peaks()
         t0 = time.perf_counter()
         for a, n in spans[1:]:
             dataset.frames.chunk(a, n)
@@ -281,7 +316,7 @@ def gpu(segment, base: TrainConfig, start: dict, args, device: str = "cuda", spl
     for splatter in splatters:
         torch.cuda.empty_cache()
         torch.cuda.reset_peak_memory_stats()
-        reset_peak_rss()
+        reset_peaks()
         try:
             t = Trainer(segment, TrainConfig(**{**config, "splatter": splatter}), _state=copy.deepcopy(start))
             s = step_seconds(t, max(args.steps, 10), cuda=True)
@@ -297,7 +332,7 @@ def gpu(segment, base: TrainConfig, start: dict, args, device: str = "cuda", spl
         return
     torch.cuda.empty_cache()
     torch.cuda.reset_peak_memory_stats()
-    reset_peak_rss()
+    reset_peaks()
     t0 = time.perf_counter()
     trainer = Trainer(segment, TrainConfig(**{**config, "splatter": splatters[0]}), _state=copy.deepcopy(start))
     setup = time.perf_counter() - t0

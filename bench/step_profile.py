@@ -3,7 +3,8 @@
 20 cameras at 676x507, 200k Gaussians, the numba splatter).
 
     python bench/step_profile.py [--cameras 20] [--width 676] [--height 507] [--gaussians 200000]
-                                 [--steps 5] [--splatter numba|torch] [--threads 2] [--ops 15]
+                                 [--steps 5] [--splatter numba|torch|gsplat] [--threads 2] [--ops 15]
+                                 [--device cpu|cuda]
 
 The capture is bench/step_memory.py's (frames drawn in memory by the runtime's splatter). After one
 warm-up step, --steps steps run under cProfile; printed: the seconds per step of each part (the
@@ -11,6 +12,8 @@ time evaluation `STGParams.at`, the rasteriser forward, the colour decoder, the 
 backward pass, with the rasteriser's own backward kernel apart, density control and guided sampling,
 Adam, the ground-truth upload), then torch's own op table (torch.profiler, self CPU time) for one
 more step. Parts overlap where one calls another (the backward includes the rasteriser's backward).
+With --device cuda only torch's op table is printed, sorted by GPU time, over --steps steps (the
+host's per-part times would be launch times).
 """
 from __future__ import annotations
 
@@ -65,15 +68,19 @@ def main() -> None:
     ap.add_argument("--height", type=int, default=507)
     ap.add_argument("--gaussians", type=int, default=200_000)
     ap.add_argument("--steps", type=int, default=5)
-    ap.add_argument("--splatter", default="numba", choices=["numba", "torch"])
+    ap.add_argument("--splatter", default="numba", choices=["numba", "torch", "gsplat"])
+    ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--ops", type=int, default=15, help="rows of torch's op table")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     ds = capture(args.cameras, args.width, args.height)
     trainer = Trainer(ds, TrainConfig(num_points=args.gaussians, init="volume", depth_candidates=0,
-                                      splatter=args.splatter, iterations=30_000))
+                                      splatter=args.splatter, iterations=30_000, device=args.device))
     trainer.train_step()  # compiles the kernels
+    if args.device == "cuda":
+        cuda_table(trainer, args)
+        return
     profiler = cProfile.Profile()
     t0 = time.perf_counter()
     profiler.enable()
@@ -88,6 +95,20 @@ def main() -> None:
     with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
         trainer.train_step()
     print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=args.ops))
+
+
+def cuda_table(trainer: Trainer, args) -> None:
+    """torch.profiler's op table of --steps steps on the GPU, by self GPU time."""
+    activities = [torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA]
+    torch.cuda.synchronize()
+    t0 = time.perf_counter()
+    with torch.profiler.profile(activities=activities) as prof:
+        for _ in range(args.steps):
+            trainer.train_step()
+        torch.cuda.synchronize()
+    print(f"{trainer.dataset}; {trainer.params.count} Gaussians, {args.splatter} splatter on "
+          f"{torch.cuda.get_device_name()}; {(time.perf_counter() - t0) / args.steps:.3f} s per step (profiled)")
+    print(prof.key_averages().table(sort_by="self_device_time_total", row_limit=args.ops))
 
 
 if __name__ == "__main__":
