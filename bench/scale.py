@@ -9,9 +9,9 @@ measured, on the CPU and, where there is one, on a CUDA GPU.
                           [--segment-iterations 30000] [--no-segment]
 
 1. generate: a ring of cameras around random Gaussians (some moving) inside a shell of large ones,
-   every frame drawn by the runtime's CPU splatter (stg_runtime.splat_cpu) in --workers processes and
-   written as camXX.mp4 (--draw-scale N: drawn at 1/N size and enlarged) with poses_bounds.npy (the N3V layout, stg_train.data.n3v); kept in --data and
-   reused while its settings match.
+   every frame drawn by the runtime's CPU splatter (stg_runtime.splat_cpu) in --workers processes
+   (--draw-scale N: at 1/N size, then enlarged) and written as camXX.mp4 with poses_bounds.npy (the
+   N3V layout, stg_train.data.n3v); kept in --data and reused while its settings match.
 2. decode: the scene loaded lazily (load_dataset(lazy=True), cut into --segment-frames segments, as
    `stg-train --segment-frames` does); segment 0 decoded into its frame-cache chunk (time, size on
    disk, and the cache folders that exist afterwards: only segment 0's); with --whole (the default)
@@ -129,6 +129,8 @@ def generate(data: Path, cameras: int, frames: int, width: int, height: int, wor
         return False
     data.mkdir(parents=True, exist_ok=True)
     meta.unlink(missing_ok=True)
+    for old in data.glob("cam*.mp4"):  # of an earlier capture (another camera count)
+        old.unlink()
     jobs = [(str(data), i, cameras, frames, width, height, draw_scale, max(1, (os.cpu_count() or 1) // workers))
             for i in range(cameras)]
     with multiprocessing.get_context("spawn").Pool(workers) as pool:
