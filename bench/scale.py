@@ -312,9 +312,10 @@ def main() -> None:
 
 def gpu(segment, base: TrainConfig, start: dict, args, device: str = "cuda", splatters=("gsplat", "torch")) -> None:
     """Seconds per step and GPU peak memory with each of `splatters`; the timed segment run with the
-    first; every run starts from the trainer state `start` (the initial points)."""
+    first that ran; every run starts from the trainer state `start` (the initial points)."""
     print(f"GPU: {torch.cuda.get_device_name()}", flush=True)
     config = {**base.__dict__, "device": device}
+    working = []  # the splatters that ran
     for splatter in splatters:
         torch.cuda.empty_cache()
         torch.cuda.reset_peak_memory_stats()
@@ -326,24 +327,25 @@ def gpu(segment, base: TrainConfig, start: dict, args, device: str = "cuda", spl
                   f"{torch.cuda.max_memory_allocated() / 1e9:.2f} GB allocated "
                   f"({torch.cuda.max_memory_reserved() / 1e9:.2f} GB reserved)", flush=True)
             print(memory("  host memory"), flush=True)
+            working.append(splatter)
         except Exception as e:  # noqa: BLE001  (gsplat missing, out of memory: say so, go on)
             print(f"GPU {splatter}: failed ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})",
                   flush=True)
         t = None
-    if not args.segment:
+    if not args.segment or not working:
         return
     torch.cuda.empty_cache()
     torch.cuda.reset_peak_memory_stats()
     reset_peaks()
     t0 = time.perf_counter()
-    trainer = Trainer(segment, TrainConfig(**{**config, "splatter": splatters[0]}), _state=copy.deepcopy(start))
+    trainer = Trainer(segment, TrainConfig(**{**config, "splatter": working[0]}), _state=copy.deepcopy(start))
     setup = time.perf_counter() - t0
     trainer.train(progress=False)
     torch.cuda.synchronize()
     train = time.perf_counter() - t0 - setup
     frames = range(0, segment.num_frames, 5)
     psnr = trainer.heldout_psnr(frames)
-    print(f"GPU segment 0, {splatters[0]}, {args.segment_iterations} steps: set-up {setup:.0f} s, training "
+    print(f"GPU segment 0, {working[0]}, {args.segment_iterations} steps: set-up {setup:.0f} s, training "
           f"{train:.0f} s ({train / args.segment_iterations:.3f} s/step), {trainer.params.count} Gaussians, "
           f"held-out PSNR {psnr:.2f} dB (cam00, frames {list(frames)}); GPU peak "
           f"{torch.cuda.max_memory_allocated() / 1e9:.2f} GB", flush=True)
