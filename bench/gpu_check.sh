@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Every check that needs a real NVIDIA GPU, in one run of at most GPU_CHECK_SECONDS (default 400; each
-# step has its own time limit and none starts past the budget), with its logs in one folder (8 files):
+# step has its own time limit and none starts past the budget), with its logs in one folder (10 files):
 #
 #   bash bench/gpu_check.sh [OUTDIR]      (default: $OUT if set, else out/gpu_check)
 #
@@ -12,7 +12,14 @@
 # 3. gsplat: its CUDA kernels are built (gsplat_build.log) in the background from the start, on the
 #    cores our steps leave idle; then tests/train/test_render_gsplat.py compares it with the torch splatter,
 #    and the render benchmark runs again with gsplat's rasterization beside ours;
-# 4. bench/train.py on the GPU with the torch splatter and with gsplat (a short run, both in train.log),
+# 4. bench/scale.py at the N3V size (20 cameras x 50 frames at 1352x1014, one segment; scale.log), if
+#    time is left and GPU_CHECK_SCALE is not 0: generation and decoding on the host, then seconds per
+#    step and GPU peak memory with gsplat and with the torch splatter, and segment 0 trained for
+#    GPU_CHECK_SCALE_ITERATIONS steps (default 1000; the reference schedule's 30000 need their own run:
+#    `python bench/scale.py --frames 50 --no-cpu --no-whole`) with its held-out PSNR; then
+#    bench/step_profile.py: a gsplat step's GPU time by op (step_profile.log). Both need about 260 s:
+#    give the script GPU_CHECK_SECONDS=580 (or GPU_CHECK_TRAIN=0) for it to be reached;
+# 5. bench/train.py on the GPU with the torch splatter and with gsplat (a short run, both in train.log),
 #    if time is left and GPU_CHECK_TRAIN is not 0.
 #
 # It uses the checkout in place (PYTHONPATH, no install). Wheels in .whl/ (gsplat, say: `pip download
@@ -75,6 +82,13 @@ while kill -0 $build 2>/dev/null && ((SECONDS < budget - 120)); do sleep 2; done
 kill $build 2>/dev/null && echo "gsplat build stopped: out of time" >>"$out/gsplat_build.log"
 step 50 tests_gsplat.log $py -m pytest -q -rs -p no:cacheprovider tests/train/test_render_gsplat.py
 step 70 render_gsplat.log $py bench/render.py --device cuda --gaussians 200000 --size 1352x1014 --repeats 20
+
+if [[ ${GPU_CHECK_SCALE:-1} != 0 ]]; then
+    step 220 scale.log $py bench/scale.py --frames 50 --no-cpu --no-whole --steps 10 --threads 16 \
+        --segment-iterations "${GPU_CHECK_SCALE_ITERATIONS:-1000}" --data /tmp/stg_scale
+    step 60 step_profile.log $py bench/step_profile.py --device cuda --splatter gsplat --width 1352 --height 1014 \
+        --steps 10 --threads 16 --ops 25
+fi
 
 if [[ ${GPU_CHECK_TRAIN:-1} != 0 ]]; then
     step 40 train_torch.log $py bench/train.py --device cuda --splatter torch --threads 16 \
