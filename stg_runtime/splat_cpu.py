@@ -14,8 +14,8 @@ regions per frame: a region costs milliseconds when the other core is busy):
    log(255 opacity), with a margin), clipped to the image. Culled Gaussians (near plane, determinant, opacity floor, nothing to visit)
    get no tiles. Each kept Gaussian gets a 64-byte record (see _PACKED): all the compositor reads
    about it.
-2. _sort_by_depth: the kept Gaussians in (depth, index) order (radix sort; exactly the float64 order).
-3. _bin: every Gaussian is listed in each tile its rectangle meets; lists come out in depth order.
+2. sort_by_depth: the kept Gaussians in (depth, index) order (radix sort; exactly the float64 order).
+3. bin_tiles: every Gaussian is listed in each tile its rectangle meets; lists come out in depth order.
 4. _composite (parallel over tiles, taken longest list first from an atomic counter): a tile's state
    (transmittance, sum w z, sum w f per channel) lives in planes of one array, each plane laid out in
    strips 8 pixels wide, row-major within a strip. Per Gaussian and strip, the pixels from the first
@@ -117,7 +117,7 @@ def _fetch_add(typingctx, arr, index, value):
 
 
 @numba.njit(inline="always")
-def _exp_neg(p):
+def exp_neg(p):
     """exp(-p) for float32 p <= 87 (larger p is clamped: the result is then < 2e-38); relative error
     below 2e-7. Branch-free: Cody-Waite reduction, a polynomial, and the exponent bits."""
     x = -min(p, np.float32(87.0))
@@ -143,7 +143,7 @@ def _blend(px, py, t, mx, my, ha, cb, hc, o, left, right, bottom):
     dx = px - mx
     dy = py - my
     power = dx * (ha * dx + cb * dy) + hc * dy * dy
-    alpha = min(np.float32(MAX_ALPHA), o * _exp_neg(power))
+    alpha = min(np.float32(MAX_ALPHA), o * exp_neg(power))
     ok = ((px >= left) & (px <= right) & (py <= bottom) & (t > zero) & (power >= zero)
           & (alpha >= MIN_ALPHA32))
     t_next = t * (np.float32(1.0) - alpha)
@@ -193,7 +193,7 @@ def _project(means, quats, scales, opacities, features, cam, width, height, tile
 
 
 @numba.njit(cache=True)
-def _sort_by_depth(tiles, depth):
+def sort_by_depth(tiles, depth):
     """Ids of the kept Gaussians (non-empty tiles) in (depth, index) order.
 
     A stable LSD radix sort (11-bit digits) on the bits of float32(depth) (monotonic for positive
@@ -254,7 +254,7 @@ def _sort_by_depth(tiles, depth):
 
 
 @numba.njit(cache=True)
-def _bin(order, tiles, tiles_x, tiles_y):
+def bin_tiles(order, tiles, tiles_x, tiles_y):
     """Per-tile lists of the kept Gaussians, in depth order: order (K,) their ids in (depth, index)
     order, tiles (M, 4) as made by _project.
 
@@ -493,10 +493,10 @@ def rasterize(means, quats, scales, opacities, features, camera: Camera, *, tile
     with numba.parallel_chunksize(2048):  # dynamic scheduling: robust to a busy core
         _project(means, quats, scales, opacities, features, camera_params(camera), W, H, tile_size,
                  packed_all, tiles_all, depth)
-    order = _sort_by_depth(tiles_all, depth)
+    order = sort_by_depth(tiles_all, depth)
     tiles_x = -(-W // tile_size)
     tiles_y = -(-H // tile_size)
-    tile_start, tile_ids, tile_order = _bin(order, tiles_all, tiles_x, tiles_y)
+    tile_start, tile_ids, tile_order = bin_tiles(order, tiles_all, tiles_x, tiles_y)
     if C > 3:  # the further channels, zero-padded to a multiple of 3
         feat = np.zeros((m, -(-C // 3) * 3), np.float32)
         feat[:, :C] = features

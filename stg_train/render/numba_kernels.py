@@ -39,7 +39,7 @@ import numpy as np
 from numba import types
 from numba.extending import overload
 
-from stg_runtime.splat_cpu import _exp_neg as exp_neg32
+from stg_runtime.splat_cpu import exp_neg as exp_neg32
 from stg_runtime.spec import MAX_ALPHA, MAX_ALPHA32, MIN_ALPHA, MIN_ALPHA32, T_STOP, T_STOP32
 
 #: Tile edge in pixels, a compile-time constant (the kernels' loops are over a tile's rows).
@@ -158,7 +158,7 @@ B_T, B_COUNT, B_SUFFIX, B_GV, B_WEIGHT, B_GALPHA, B_GDEPTH, B_GFEATURES = 2, 3, 
 @numba.njit(parallel=True, cache=True, fastmath={"contract"})
 def forward(means2d, conic, opacity, features, depth, rects, tile_start, tile_ids, tile_order, tiles_x, consts,
             out, trans, n_last):
-    """Composite every tile (lists as made by stg_runtime.splat_cpu._bin: tile t lists the Gaussian
+    """Composite every tile (lists as made by stg_runtime.splat_cpu.bin_tiles: tile t lists the Gaussian
     ids tile_ids[tile_start[t]:tile_start[t + 1]] front to back; tile_order is the work order).
 
     Writes out (C + 2, H, W): the planes [sum w f_c, sum w, sum w z]; trans (H, W): the final

@@ -18,12 +18,12 @@ import torch
 from torch import Tensor
 
 from stg_runtime.projection import camera_params
-from stg_runtime.splat_cpu import _bin as bin_tiles
-from stg_runtime.splat_cpu import _sort_by_depth as sort_by_depth
+from stg_runtime.splat_cpu import bin_tiles, sort_by_depth
 
 from . import numba_kernels as kernels
 from . import numba_projection
 from .output import RenderOutput
+
 
 class _Tiles:
     """What the backward pass needs from the forward pass, beside the inputs (numpy arrays)."""

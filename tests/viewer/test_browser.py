@@ -46,6 +46,12 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
     return float(10 * np.log10(1.0 / max(mse, 1e-12)))
 
 
+def _interruptible() -> None:
+    """In the child: Ctrl-C as in a terminal, whatever the test process inherited or blocked."""
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 class ViewerProcess:
     """`stg-view MODEL --port P` in a subprocess, its stderr collected."""
 
@@ -53,7 +59,8 @@ class ViewerProcess:
         env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
         self.proc = subprocess.Popen([sys.executable, "-m", "stg_runtime.viewer.cli", str(MODEL), "--port", str(port),
                                       "--device", "cpu", "--jpeg-quality", "95"], cwd=ROOT, env=env,
-                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                     preexec_fn=_interruptible)
         self.err: list[str] = []
         threading.Thread(target=lambda: self.err.extend(self.proc.stderr), daemon=True).start()
         threading.Thread(target=lambda: self.proc.stdout.read(), daemon=True).start()
@@ -138,7 +145,7 @@ def test_browser_shows_the_model_and_follows_the_time_slider(browser):
             code = viewer.proc.wait(timeout=90)  # (a busy machine can take long to stop the threads)
         except subprocess.TimeoutExpired:
             viewer.proc.kill()
-            raise
+            raise AssertionError("stg-view did not stop on Ctrl-C: " + "".join(viewer.err)) from None
     assert code == 0, "".join(viewer.err)
     assert "Traceback" not in "".join(viewer.err)
     with socket.socket() as s:  # the port is free again (nobody listens; TIME_WAIT may remain)
