@@ -45,10 +45,11 @@ class TrainConfig:
     the dataset), "sfm" (stg_train.data.sfm on every init_every-th frame), "volume"
     (stg_train.data.volume) or "combined" (SfM points plus view-volume samples where they leave holes);
     depth_candidates: photo-consistency depth search of the view-volume points (0: uniform depths; see
-    stg_train.data.volume.sample_view_volume); static: freeze the time terms (ablation); lr_scale: multiplies every
-    reference learning rate; stretch_rates: the motion and rotation velocities' rates stretched to the
-    run's length (params.LearningRates.stretched; False: the reference's 30k-step rates); schedule: Schedule field overrides (iterations of this run) on top of the
-    reference schedule stretched to `iterations`; thresholds: Thresholds field overrides; seed: numpy /
+    stg_train.data.volume.sample_view_volume); static: freeze the time terms (ablation); lr_scale:
+    multiplies every reference learning rate; stretch_rates: the motion and rotation velocities' rates
+    stretched to the run's length (params.LearningRates.stretched; False: the reference's 30k-step
+    rates); schedule: Schedule field overrides (iterations of this run) on top of the reference schedule
+    stretched to `iterations`; thresholds: Thresholds field overrides; seed: numpy /
     torch / python seeds; device: "cpu" or "cuda"; splatter: the rasteriser backend, "numba", "torch",
     "gsplat" or "auto" (stg_train.render.rasterize and resolve_backend: numba on the CPU, gsplat on CUDA
     where it can run, else torch); guided: guided sampling of Gaussians in high-error patches
@@ -81,7 +82,9 @@ class TrainConfig:
         splatter "auto" -> resolve_backend(splatter, device)."""
         init = resolve_method(dataset, self.init)
         config = self if init == self.init else replace(self, init=init)
-        return config if config.splatter != "auto" else replace(config, splatter=resolve_backend("auto", config.device))
+        if config.splatter == "auto":
+            config = replace(config, splatter=resolve_backend("auto", config.device))
+        return config
 
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":

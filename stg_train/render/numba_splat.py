@@ -46,7 +46,8 @@ class Project(torch.autograd.Function):
     def forward(ctx, means, quats, scales, opacities, camera):
         arrays = [_numpy(x) for x in (means, quats, scales, opacities)]
         m, dtype = means.shape[0], means.dtype
-        means2d, conic, depth = torch.empty(m, 2, dtype=dtype), torch.empty(m, 3, dtype=dtype), torch.empty(m, dtype=dtype)
+        means2d, conic = torch.empty(m, 2, dtype=dtype), torch.empty(m, 3, dtype=dtype)
+        depth = torch.empty(m, dtype=dtype)
         radius, valid = torch.empty(m, dtype=torch.int64), torch.empty(m, dtype=torch.bool)
         cam = camera_params(camera)
         numba_projection.forward(*arrays, cam, means2d.numpy(), conic.numpy(), depth.numpy(), radius.numpy(),
