@@ -64,6 +64,22 @@ def _jacobian(cam, x, y, z):
     return cam[12] / z, -cam[12] * xz / z, cam[13] / z, -cam[13] * yz / z, xz, yz, x_free, y_free
 
 
+@numba.njit(cache=True)
+def _covariance(cam, quats, scales, i, x, y, z):
+    """Gaussian i seen from camera-space mean (x, y, z): (its axes M (_axes), the unit quaternion and
+    its norm, the Jacobian (_jacobian), T = J M as two rows of 3, and the 2D covariance a, b, c with the
+    blur)."""
+    m, q, norm = _axes(cam, quats, scales, i)
+    jac = _jacobian(cam, x, y, z)
+    j00, j02, j11, j12 = jac[0], jac[1], jac[2], jac[3]
+    t = (j00 * m[0] + j02 * m[6], j00 * m[1] + j02 * m[7], j00 * m[2] + j02 * m[8],
+         j11 * m[3] + j12 * m[6], j11 * m[4] + j12 * m[7], j11 * m[5] + j12 * m[8])
+    a = t[0] * t[0] + t[1] * t[1] + t[2] * t[2] + BLUR
+    b = t[0] * t[3] + t[1] * t[4] + t[2] * t[5]
+    c = t[3] * t[3] + t[4] * t[4] + t[5] * t[5] + BLUR
+    return m, q, norm, jac, t, a, b, c
+
+
 @numba.njit(parallel=True, cache=True)
 def forward(means, quats, scales, opacities, cam, means2d, conic, depth, radius, valid):
     """Fill means2d (M, 2), conic (M, 3), depth (M,), radius (M,) int64 and valid (M,) bool."""
@@ -82,17 +98,7 @@ def forward(means, quats, scales, opacities, cam, means2d, conic, depth, radius,
         valid[i] = False
         if not in_front or not np.float64(opacities[i]) >= MIN_ALPHA:
             continue
-        m, _, _ = _axes(cam, quats, scales, i)
-        j00, j02, j11, j12, _, _, _, _ = _jacobian(cam, x, y, z)
-        a = b = c = 0.0
-        for k in range(3):
-            t0 = j00 * m[k] + j02 * m[6 + k]
-            t1 = j11 * m[3 + k] + j12 * m[6 + k]
-            a += t0 * t0
-            b += t0 * t1
-            c += t1 * t1
-        a += BLUR
-        c += BLUR
+        _, _, _, _, _, a, b, c = _covariance(cam, quats, scales, i, x, y, z)
         det = a * c - b * b
         if not det > 0.0:
             continue
@@ -141,13 +147,8 @@ def _covariance_backward(cam, quats, scales, g_conic, i, x, y, z, gx, gy, gz, g_
     """Add the conic's gradient to (gx, gy, gz) (camera space) and write dL/d quats and dL/d scales of
     Gaussian i. Returns the new (gx, gy, gz)."""
     fx, fy = cam[12], cam[13]
-    m, q, norm = _axes(cam, quats, scales, i)
-    j00, j02, j11, j12, xz, yz, x_free, y_free = _jacobian(cam, x, y, z)
-    t = (j00 * m[0] + j02 * m[6], j00 * m[1] + j02 * m[7], j00 * m[2] + j02 * m[8],  # T = J M, two rows
-         j11 * m[3] + j12 * m[6], j11 * m[4] + j12 * m[7], j11 * m[5] + j12 * m[8])
-    a = t[0] * t[0] + t[1] * t[1] + t[2] * t[2] + BLUR
-    b = t[0] * t[3] + t[1] * t[4] + t[2] * t[5]
-    c = t[3] * t[3] + t[4] * t[4] + t[5] * t[5] + BLUR
+    m, q, norm, jac, t, a, b, c = _covariance(cam, quats, scales, i, x, y, z)
+    j00, j02, j11, j12, xz, yz, x_free, y_free = jac
     det = a * c - b * b
     gA, gB, gC = np.float64(g_conic[i, 0]), np.float64(g_conic[i, 1]), np.float64(g_conic[i, 2])
     d2 = det * det
