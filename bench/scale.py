@@ -41,7 +41,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from step_memory import peak_rss_gb, reset_peak_rss  # noqa: E402  (the sibling benchmark's helpers)
+from step_memory import peak_rss_gb, reset_peak_rss, status_gb  # noqa: E402  (the sibling benchmark's helpers)
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
@@ -147,11 +147,7 @@ def generate(data: Path, cameras: int, frames: int, width: int, height: int, wor
 # -- measuring -------------------------------------------------------------------------------------
 def rss_anon_gb() -> float:
     """The process's anonymous resident memory now (RssAnon), in GB."""
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith("RssAnon:"):
-                return int(line.split()[1]) * 1024 / 1e9
-    return float("nan")
+    return status_gb("RssAnon")
 
 
 class AnonymousPeak(threading.Thread):

@@ -28,13 +28,18 @@ from stg_train.data.dataset import Dataset
 from stg_train.trainer import Trainer, TrainConfig
 
 
-def peak_rss_gb() -> float:
-    """The process's peak resident memory so far (VmHWM), in GB."""
+def status_gb(key: str) -> float:
+    """A memory figure of /proc/self/status (e.g. "VmHWM", "RssAnon"), in GB (nan when absent)."""
     with open("/proc/self/status") as f:
         for line in f:
-            if line.startswith("VmHWM:"):
+            if line.startswith(key + ":"):
                 return int(line.split()[1]) * 1024 / 1e9
     return float("nan")
+
+
+def peak_rss_gb() -> float:
+    """The process's peak resident memory so far (VmHWM), in GB."""
+    return status_gb("VmHWM")
 
 
 def reset_peak_rss() -> None:
