@@ -22,7 +22,7 @@ from stg_runtime.splat_cpu import bin_tiles, sort_by_depth
 
 from . import numba_kernels as kernels
 from . import numba_projection
-from .output import RenderOutput
+from .output import RenderOutput, expected_depth
 
 
 class _Tiles:
@@ -138,6 +138,5 @@ def rasterize_numba(means: Tensor, quats: Tensor, scales: Tensor, opacities: Ten
         means2d.retain_grad()
     feats, alpha, depth_sum, visible = Composite.apply(means2d, conic, opacities, features, z, radius, valid, W, H)
     radii = torch.where(visible, radius, torch.zeros_like(radius))
-    depth = torch.where(alpha > 0, depth_sum / torch.where(alpha > 0, alpha, torch.ones_like(alpha)),
-                        torch.zeros_like(alpha))
+    depth = expected_depth(depth_sum, alpha)
     return RenderOutput(feats, alpha, depth, means2d, radii, visible)

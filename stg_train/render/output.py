@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import torch
 from torch import Tensor
 
 
@@ -24,3 +25,10 @@ class RenderOutput(NamedTuple):
     means2d: Tensor
     radii: Tensor
     visible: Tensor
+
+
+def expected_depth(depth_sum: Tensor, alpha: Tensor) -> Tensor:
+    """depth = sum w z / alpha where alpha > 0, else 0 (differentiable, no division by 0)."""
+    covered = alpha > 0
+    return torch.where(covered, depth_sum / torch.where(covered, alpha, torch.ones_like(alpha)),
+                       torch.zeros_like(alpha))

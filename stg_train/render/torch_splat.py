@@ -36,7 +36,7 @@ from torch import Tensor
 
 from stg_runtime.spec import BLUR, JACOBIAN_MARGIN, MAX_ALPHA, MIN_ALPHA, NEAR, T_STOP
 
-from .output import RenderOutput
+from .output import RenderOutput, expected_depth
 
 LOG_T_STOP = math.log(T_STOP)
 
@@ -252,5 +252,5 @@ def rasterize_torch(means: Tensor, quats: Tensor, scales: Tensor, opacities: Ten
         img = img + 0 * (per_g.sum() + vals.sum() + means.sum() + quats.sum() + scales.sum())
     img = img.reshape(nty, ntx, ts, ts, D).permute(0, 2, 1, 3, 4).reshape(nty * ts, ntx * ts, D)[:H, :W]
     feats, alpha, num = img[..., :-2], img[..., -2], img[..., -1]
-    depth = torch.where(alpha > 0, num / torch.where(alpha > 0, alpha, torch.ones_like(alpha)), torch.zeros_like(alpha))
+    depth = expected_depth(num, alpha)
     return RenderOutput(feats, alpha, depth, means2d, radii, visible)
