@@ -1,12 +1,13 @@
-"""Pinhole cameras in the OpenCV convention (x right, y down, z forward), world-to-camera poses, and
-camera paths (an orbit around a rig; camera-path JSON files, a list of camera objects).
+"""Cameras in the OpenCV convention (x right, y down, z forward), world-to-camera poses, and camera
+paths (an orbit around a rig; camera-path JSON files, a list of camera objects).
 
-Pixel (column u, row v) has its centre at (u + 0.5, v + 0.5); see formats/stg-v1.md, section 1.
+Two camera models (formats/stg-v1.md, section 1): `pinhole` and `fisheye` (OpenCV's fisheye model,
+Kannala-Brandt with k1..k4). Pixel (column u, row v) has its centre at (u + 0.5, v + 0.5).
 """
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Sequence
 
@@ -15,12 +16,47 @@ import numpy as np
 from .atomic import write_atomic
 
 
+MODELS = ("pinhole", "fisheye")
+
+
+def fisheye_distort(theta, k) -> np.ndarray:
+    """theta_d = theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8): the fisheye model's
+    distorted angle (radians; the image radius is f * theta_d) for angles `theta` (radians) off the axis."""
+    t2 = np.square(theta)
+    return theta * (1 + t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * k[3]))))
+
+
+def fisheye_max_angle(k) -> float:
+    """The largest angle off the axis (radians, at most pi) up to which theta_d(theta) is increasing:
+    the first zero of d theta_d / d theta = 1 + 3 k1 theta^2 + 5 k2 theta^4 + 7 k3 theta^6 + 9 k4 theta^8,
+    or pi. A fisheye camera sees (and splatters draw) only what lies within it (spec section 3)."""
+    roots = np.roots([9 * k[3], 0, 7 * k[2], 0, 5 * k[1], 0, 3 * k[0], 0, 1.0])
+    real = roots[(np.abs(roots.imag) < 1e-12) & (roots.real > 0)].real
+    return float(min(real.min(initial=np.pi), np.pi))
+
+
+def fisheye_undistort(theta_d, k, max_angle: float, iterations: int = 10) -> np.ndarray:
+    """The angles theta (radians, in [0, max_angle]) with fisheye_distort(theta, k) = theta_d: Newton's
+    method from theta = theta_d, `iterations` steps, each clamped to [0, max_angle] (beyond the image
+    circle, theta_d > fisheye_distort(max_angle), the answer is max_angle)."""
+    theta_d = np.asarray(theta_d, dtype=np.float64)
+    theta = np.clip(theta_d, 0.0, max_angle)
+    for _ in range(iterations):
+        t2 = theta * theta
+        slope = 1 + t2 * (3 * k[0] + t2 * (5 * k[1] + t2 * (7 * k[2] + t2 * 9 * k[3])))
+        step = (fisheye_distort(theta, k) - theta_d) / np.where(slope > 0, slope, 1.0)
+        theta = np.clip(theta - np.where(slope > 0, step, 0.0), 0.0, max_angle)
+    return theta
+
+
 @dataclass(frozen=True, eq=False)
 class Camera:
-    """A pinhole camera.
+    """A camera: pinhole (the default) or fisheye.
 
     fx, fy, cx, cy: intrinsics in pixels; width, height: image size in pixels;
-    world_to_camera: (4, 4) float64 rigid transform, x_cam = R @ x_world + t.
+    world_to_camera: (4, 4) float64 rigid transform, x_cam = R @ x_world + t;
+    model: "pinhole" or "fisheye"; distortion: () for pinhole, (k1, k2, k3, k4) for fisheye (OpenCV's
+    cv2.fisheye coefficients; the default is the equidistant fisheye, all zero).
     """
 
     fx: float
@@ -31,6 +67,8 @@ class Camera:
     height: int
     world_to_camera: np.ndarray = field(repr=False)
     name: str = ""
+    model: str = "pinhole"
+    distortion: tuple = ()
 
     def __post_init__(self):
         w2c = np.array(self.world_to_camera, dtype=np.float64).reshape(4, 4)
@@ -46,6 +84,16 @@ class Camera:
             raise ValueError(f"camera {self.name!r}: focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
         if not np.all(np.isfinite(w2c)):
             raise ValueError(f"camera {self.name!r}: world_to_camera has non-finite entries")
+        if self.model not in MODELS:
+            raise ValueError(f"camera {self.name!r}: unknown camera model {self.model!r} (known: {', '.join(MODELS)})")
+        k = tuple(float(v) for v in self.distortion)
+        if self.model == "fisheye" and not k:
+            k = (0.0, 0.0, 0.0, 0.0)
+        expected = 4 if self.model == "fisheye" else 0
+        if len(k) != expected or not np.all(np.isfinite(k)):
+            raise ValueError(f"camera {self.name!r}: a {self.model} camera takes {expected} finite distortion "
+                             f"coefficients, got {list(self.distortion)}")
+        object.__setattr__(self, "distortion", k)
 
     def __eq__(self, other) -> bool:
         return isinstance(other, Camera) and self.to_dict() == other.to_dict()
@@ -73,9 +121,12 @@ class Camera:
                    camera.world_to_camera, name)
 
     @classmethod
-    def look_at(cls, eye, target, up, fov_deg: float, width: int, height: int, name: str = "") -> "Camera":
+    def look_at(cls, eye, target, up, fov_deg: float, width: int, height: int, name: str = "",
+                model: str = "pinhole") -> "Camera":
         """A camera at `eye` looking at `target`; `up` is the world direction that appears up in the
-        image; `fov_deg` is the vertical field of view in degrees; principal point at the image centre."""
+        image; `fov_deg` is the vertical field of view in degrees; principal point at the image centre.
+        model "fisheye" gives an equidistant fisheye (k = 0: image radius = f x angle), so fov_deg may
+        reach 360 (the image's top and bottom edges at fov_deg / 2 off the axis)."""
         eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
         forward = target - eye
         if np.linalg.norm(forward) == 0:
@@ -90,8 +141,9 @@ class Camera:
         w2c = np.eye(4)
         w2c[:3, :3] = R
         w2c[:3, 3] = -R @ eye
-        f = 0.5 * height / np.tan(np.radians(fov_deg) / 2)
-        return cls(f, f, width / 2, height / 2, width, height, w2c, name)
+        half = np.radians(fov_deg) / 2
+        f = 0.5 * height / (half if model == "fisheye" else np.tan(half))
+        return cls(f, f, width / 2, height / 2, width, height, w2c, name, model)
 
     # -- derived quantities ---------------------------------------------------------------------
     @property
@@ -118,7 +170,13 @@ class Camera:
         """The same camera with the image scaled to width x height (intrinsics scaled to match)."""
         sx, sy = width / self.width, height / self.height
         return Camera(self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, width, height,
-                      self.world_to_camera, self.name)
+                      self.world_to_camera, self.name, self.model, self.distortion)
+
+    @property
+    def max_angle(self) -> float:
+        """The largest angle off the optical axis (radians) the camera sees: for a fisheye, where its
+        distortion stops increasing (fisheye_max_angle; pi when it never does); for a pinhole, pi / 2."""
+        return fisheye_max_angle(self.distortion) if self.model == "fisheye" else np.pi / 2
 
     def project(self, points) -> tuple[np.ndarray, np.ndarray]:
         """World points (..., 3) -> (pixel coordinates (..., 2) as (u, v), camera-space depth (...,)).
@@ -126,38 +184,75 @@ class Camera:
         Continuous coordinates: the pixel of column c, row r covers [c, c+1) x [r, r+1). Points at or
         behind the camera plane (depth <= 0) get meaningless coordinates: check the depth."""
         p = np.asarray(points, dtype=np.float64) @ self.R.T + self.t
-        z = p[..., 2]
-        zs = np.where(z > 0, z, 1.0)
-        return np.stack([self.fx * p[..., 0] / zs + self.cx, self.fy * p[..., 1] / zs + self.cy], -1), z
+        x, y, z = p[..., 0], p[..., 1], p[..., 2]
+        if self.model == "fisheye":
+            r = np.hypot(x, y)
+            theta_d = fisheye_distort(np.arctan2(r, z), self.distortion)
+            scale = np.where(r > 0, theta_d / np.where(r > 0, r, 1.0), 1.0 / np.where(z > 0, z, 1.0))
+        else:
+            scale = 1.0 / np.where(z > 0, z, 1.0)
+        return np.stack([self.fx * x * scale + self.cx, self.fy * y * scale + self.cy], -1), z
+
+    def camera_rays(self, u, v) -> np.ndarray:
+        """(..., 3) float64 unit directions in camera space through image points (u, v) (continuous
+        coordinates, arrays broadcast). A fisheye's points beyond its image circle get the direction at
+        max_angle (fisheye_undistort)."""
+        u, v = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in (u, v)))
+        mx, my = (u - self.cx) / self.fx, (v - self.cy) / self.fy
+        if self.model == "fisheye":
+            theta_d = np.hypot(mx, my)
+            theta = fisheye_undistort(theta_d, self.distortion, self.max_angle)
+            s = np.where(theta_d > 0, np.sin(theta) / np.where(theta_d > 0, theta_d, 1.0), 1.0)
+            return np.stack([mx * s, my * s, np.cos(theta)], -1)
+        d = np.stack([mx, my, np.ones_like(mx)], -1)
+        return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
     def unproject(self, u, v, depth) -> np.ndarray:
-        """World points (..., 3) at camera-space depth `depth` on the rays through image points (u, v)
-        (continuous coordinates; a pixel centre is (column + 0.5, row + 0.5)); arrays broadcast."""
+        """World points (..., 3) at camera-space depth `depth` (z, not distance) on the rays through image
+        points (u, v) (continuous coordinates; a pixel centre is (column + 0.5, row + 0.5)); arrays
+        broadcast. A fisheye ray at or beyond 90 degrees off the axis has no point at depth > 0: its
+        points are non-finite."""
         u, v, depth = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in (u, v, depth)))
-        x_cam = np.stack([(u - self.cx) / self.fx * depth, (v - self.cy) / self.fy * depth, depth], -1)
+        if self.model == "fisheye":
+            d = self.camera_rays(u, v)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                x_cam = d * (depth / np.where(d[..., 2] > 0, d[..., 2], np.nan))[..., None]
+        else:
+            x_cam = np.stack([(u - self.cx) / self.fx * depth, (v - self.cy) / self.fy * depth, depth], -1)
         return (x_cam - self.t) @ self.R  # R^T (x - t)
 
     def ray_directions(self) -> np.ndarray:
         """(H, W, 3) float64 unit directions, in world coordinates, through every pixel centre."""
-        u = (np.arange(self.width) + 0.5 - self.cx) / self.fx
-        v = (np.arange(self.height) + 0.5 - self.cy) / self.fy
-        d = np.empty((self.height, self.width, 3))
-        d[..., 0] = u[None, :]
-        d[..., 1] = v[:, None]
-        d[..., 2] = 1.0
-        d /= np.linalg.norm(d, axis=-1, keepdims=True)
-        return d @ self.R  # row vector form of R^T d
+        u = np.arange(self.width) + 0.5
+        v = np.arange(self.height) + 0.5
+        return self.camera_rays(u[None, :], v[:, None]) @ self.R  # row vector form of R^T d
 
     # -- serialisation (used by the file format and camera-path files) --------------------------
     def to_dict(self) -> dict:
-        return {"name": self.name, "width": self.width, "height": self.height, "fx": self.fx,
-                "fy": self.fy, "cx": self.cx, "cy": self.cy,
-                "world_to_camera": [float(v) for v in self.world_to_camera.ravel()]}
+        """The camera object of formats/stg-v1.md, section 4: a pinhole's intrinsics at the top level,
+        a fisheye's (with k1..k4) under "intrinsics" beside "model": "fisheye"."""
+        w2c = [float(v) for v in self.world_to_camera.ravel()]
+        intrinsics = {"fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy}
+        if self.model == "pinhole":
+            return {"name": self.name, "width": self.width, "height": self.height, **intrinsics,
+                    "world_to_camera": w2c}
+        intrinsics.update(zip(("k1", "k2", "k3", "k4"), self.distortion))
+        return {"name": self.name, "width": self.width, "height": self.height, "model": self.model,
+                "intrinsics": intrinsics, "world_to_camera": w2c}
 
     @classmethod
     def from_dict(cls, d: dict) -> "Camera":
-        return cls(d["fx"], d["fy"], d["cx"], d["cy"], d["width"], d["height"],
-                   np.asarray(d["world_to_camera"], dtype=np.float64).reshape(4, 4), d.get("name", ""))
+        """The inverse of to_dict; KeyError, TypeError or ValueError for a malformed object (an unknown
+        model is a ValueError naming it)."""
+        model = d["model"] if "model" in d else "pinhole"
+        if model not in MODELS:
+            raise ValueError(f"unknown camera model {model!r} (this reader knows {', '.join(MODELS)})")
+        w2c = np.asarray(d["world_to_camera"], dtype=np.float64).reshape(4, 4)
+        if model == "pinhole":
+            return cls(d["fx"], d["fy"], d["cx"], d["cy"], d["width"], d["height"], w2c, d.get("name", ""))
+        i = d["intrinsics"]
+        return cls(i["fx"], i["fy"], i["cx"], i["cy"], d["width"], d["height"], w2c, d.get("name", ""), model,
+                   tuple(i[k] for k in ("k1", "k2", "k3", "k4")))
 
 
 def orbit(cameras, num_frames: int, target=None, radius=None, width=None, height=None) -> list[Camera]:
@@ -167,7 +262,7 @@ def orbit(cameras, num_frames: int, target=None, radius=None, width=None, height
     camera centre (the usual orbit for forward-facing rigs); every view looks at `target`, by default a
     point in front of the rig at 4x the rig's spread (at least 1 unit). `radius` defaults to the rig's
     mean spread, at least 5% of the distance to the target. Intrinsics follow the first camera, resized
-    to width x height when given.
+    to width x height when given, and so does the camera model (a fisheye rig orbits with its lens).
     """
     cameras = list(cameras)
     if not cameras:
@@ -187,13 +282,14 @@ def orbit(cameras, num_frames: int, target=None, radius=None, width=None, height
     right = np.cross(down, forward)
     right /= np.linalg.norm(right)
     up_axis = np.cross(forward, right)
-    fov = np.degrees(2 * np.arctan(0.5 * base.height / base.fy))
+    half = 0.5 * base.height / base.fy
+    fov = np.degrees(2 * (half if base.model == "fisheye" else np.arctan(half)))
     path = []
     for i in range(num_frames):
         a = 2 * np.pi * i / num_frames
         eye = mid + radius * (np.cos(a) * right + np.sin(a) * up_axis)
-        cam = Camera.look_at(eye, target, -down, fov, base.width, base.height, name=f"orbit{i:04d}")
-        path.append(cam)
+        cam = Camera.look_at(eye, target, -down, fov, base.width, base.height, f"orbit{i:04d}", base.model)
+        path.append(replace(cam, distortion=base.distortion))
     return path
 
 

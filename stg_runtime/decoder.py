@@ -48,7 +48,7 @@ class OnnxDecoder:
     def view_inputs(self, camera: Camera) -> np.ndarray:
         """(H * W, 6) float32 [camera centre, unit ray direction] in world coordinates; cached."""
         key = (camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height,
-               camera.world_to_camera.tobytes())
+               camera.world_to_camera.tobytes(), camera.model, camera.distortion)
         cached = self._view_inputs.get(key)
         if cached is None:
             rays = camera.ray_directions().reshape(-1, 3)

@@ -22,7 +22,7 @@ from .camera import Camera
 from .model import ACTIVATIONS, ATTRIBUTES, FEATURE_CHANNELS, KINDS, Model, Segment, allowed_channels, attribute_shape
 
 MAGIC = b"\x89STG\r\n\x1a\n"
-VERSION = (1, 1)  # the version this module reads and writes; see written_version()
+VERSION = (1, 2)  # the version this module reads and writes; see written_version()
 PREFIX = struct.Struct("<8sHHQ")  # magic, major, minor, header length
 MAX_HEADER = 64 << 20
 ALIGN = 8
@@ -137,9 +137,12 @@ def error_bound(array, encoding: str):
 # -- writing ------------------------------------------------------------------------------------
 
 
-def written_version(kind: str) -> tuple[int, int]:
-    """The version a writer puts in a file of `kind`: 1.1 for "sh" (added in 1.1), else 1.0, which every
-    1.x reader opens."""
+def written_version(kind: str, camera_models=()) -> tuple[int, int]:
+    """The version a writer puts in a file of `kind` whose cameras have `camera_models`: the lowest that
+    holds it, 1.2 with a camera other than a pinhole (added in 1.2), 1.1 for "sh" (added in 1.1), else
+    1.0, which every 1.x reader opens."""
+    if any(m != "pinhole" for m in camera_models):
+        return (1, 2)
     return (1, 1) if kind == "sh" else (1, 0)
 
 
@@ -190,7 +193,8 @@ def dumps(model: Model, encodings: dict[str, str] | None = None, codec: str = "z
               "cameras": [c.to_dict() for c in model.cameras], "bounds": bounds, "provenance": provenance}
     text = _json(header).encode("utf-8")
     text += b" " * (-(PREFIX.size + len(text)) % ALIGN)  # the data section starts 8-byte aligned
-    body = PREFIX.pack(MAGIC, *written_version(model.kind), len(text)) + text + bytes(data)
+    version = written_version(model.kind, [c.model for c in model.cameras])
+    body = PREFIX.pack(MAGIC, *version, len(text)) + text + bytes(data)
     return body + hashlib.sha256(body).digest()
 
 

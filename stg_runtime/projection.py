@@ -1,6 +1,7 @@
 """One Gaussian's screen footprint (formats/stg-v1.md, section 3), written once for both splatters.
 
     camera_params(camera) -> cam          the camera as one tuple of CAMERA_PARAMS float64
+    pixel_ray(cam, u, v) -> (dx, dy, dz)  the unit world-space ray through image point (u, v)
     footprint(cam, width, height, means, quats, scales, opacities, i)
         -> (z, u, v, conic_a, conic_b, conic_c, thr, u0, u1, v0, v1)
 
@@ -17,8 +18,8 @@ opacities (M,)), in float64, it returns:
 - the inclusive rectangle of pixel columns u0..u1 and rows v0..v1 (integers) whose centres lie within
   the 3-sigma radius and the ellipse power <= thr, clipped to the image.
 
-A culled Gaussian (z <= NEAR, opacity below 1/255, a degenerate covariance, or no pixel in its
-rectangle) has u0 > u1.
+A culled Gaussian (z <= NEAR, opacity below 1/255, for a fisheye an angle off the axis at or beyond
+the camera's max_angle, a degenerate covariance, or no pixel in its rectangle) has u0 > u1.
 
 splat_cpu caches its compiled kernels (numba's cache=True), and numba checks only the source file of
 the cached function: after editing this file, delete stg_runtime/__pycache__/*.nbi (or touch
@@ -33,8 +34,9 @@ import numpy as np
 from .spec import BLUR, JACOBIAN_MARGIN, MIN_ALPHA, NEAR
 
 #: Length of camera_params' tuple: R row-major (0..8), t (9..11), fx, fy, cx, cy (12..15), the camera
-#: centre (16..18), and the range that x/z and y/z are clamped to in the EWA Jacobian (19..22).
-CAMERA_PARAMS = 23
+#: centre (16..18), the range that x/z and y/z are clamped to in the pinhole EWA Jacobian (19..22), the
+#: model (23: 0 pinhole, 1 fisheye), the fisheye's k1..k4 (24..27) and its max_angle (28, radians).
+CAMERA_PARAMS = 29
 
 
 def camera_params(camera) -> tuple:
@@ -42,8 +44,11 @@ def camera_params(camera) -> tuple:
     w2c = camera.world_to_camera
     fx, fy, cx, cy, W, H = camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height
     tan_x, tan_y = JACOBIAN_MARGIN * W / (2.0 * fx), JACOBIAN_MARGIN * H / (2.0 * fy)  # 1.3 x tan(half fov), centred
+    fisheye = camera.model == "fisheye"
+    k = camera.distortion if fisheye else (0.0, 0.0, 0.0, 0.0)
     return (*w2c[:3, :3].ravel().tolist(), *w2c[:3, 3].tolist(), fx, fy, cx, cy, *camera.center.tolist(),
-            -(cx / fx + tan_x), (W - cx) / fx + tan_x, -(cy / fy + tan_y), (H - cy) / fy + tan_y)
+            -(cx / fx + tan_x), (W - cx) / fx + tan_x, -(cy / fy + tan_y), (H - cy) / fy + tan_y,
+            1.0 if fisheye else 0.0, *map(float, k), float(camera.max_angle))
 
 
 def footprint(cam, width, height, means, quats, scales, opacities, i):
@@ -77,17 +82,48 @@ def footprint(cam, width, height, means, quats, scales, opacities, i):
     r20 = 2.0 * (qx * qz - qw * qy)
     r21 = 2.0 * (qy * qz + qw * qx)
     r22 = 1.0 - 2.0 * (qx * qx + qy * qy)
-    # EWA Jacobian rows (fx/z, 0, -fx x'/z), (0, fy/z, -fy y'/z), x' = x/z and y' = y/z clamped to 1.3x
-    # the half field of view.
     iz = 1.0 / z
-    xz = x * iz
-    xz = cam[19] if xz < cam[19] else (cam[20] if xz > cam[20] else xz)
-    yz = y * iz
-    yz = cam[21] if yz < cam[21] else (cam[22] if yz > cam[22] else yz)
-    j00 = fx * iz
-    j02 = -j00 * xz
-    j11 = fy * iz
-    j12 = -j11 * yz
+    if cam[23] == 0.0:
+        # Pinhole. EWA Jacobian rows (fx/z, 0, -fx x'/z), (0, fy/z, -fy y'/z), x' = x/z and y' = y/z
+        # clamped to 1.3x the half field of view.
+        xz = x * iz
+        xz = cam[19] if xz < cam[19] else (cam[20] if xz > cam[20] else xz)
+        yz = y * iz
+        yz = cam[21] if yz < cam[21] else (cam[22] if yz > cam[22] else yz)
+        j00 = fx * iz
+        j01 = 0.0
+        j02 = -j00 * xz
+        j10 = 0.0
+        j11 = fy * iz
+        j12 = -j11 * yz
+        u = fx * (x * iz) + cx
+        v = fy * (y * iz) + cy
+    else:
+        # Fisheye: theta = atan2(r, z) off the axis, theta_d = theta (1 + k1 theta^2 + ... + k4 theta^8),
+        # (u, v) = (fx x radial + cx, fy y radial + cy), radial = theta_d / r; that map's Jacobian, unclamped.
+        r2 = x * x + y * y
+        r = math.sqrt(r2)
+        theta = math.atan2(r, z)
+        if not (theta < cam[28]):
+            return z, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1, 0, 1, 0
+        t2 = theta * theta
+        theta_d = theta * (1.0 + t2 * (cam[24] + t2 * (cam[25] + t2 * (cam[26] + t2 * cam[27]))))
+        slope = 1.0 + t2 * (3.0 * cam[24] + t2 * (5.0 * cam[25] + t2 * (7.0 * cam[26] + t2 * 9.0 * cam[27])))
+        rho2 = r2 + z * z
+        if r > 1e-7 * z:
+            radial = theta_d / r
+            ar = (slope * z / rho2 - radial) / r2  # (d radial / d r) / r
+        else:  # the limits at the axis
+            radial = iz
+            ar = (2.0 * cam[24] - 2.0 / 3.0) * iz * iz * iz
+        j00 = fx * (radial + x * x * ar)
+        j01 = fx * x * y * ar
+        j02 = -fx * x * slope / rho2
+        j10 = fy * x * y * ar
+        j11 = fy * (radial + y * y * ar)
+        j12 = -fy * y * slope / rho2
+        u = fx * (x * radial) + cx
+        v = fy * (y * radial) + cy
     # 2D covariance [[a, b], [b, c]] = (J M)(J M)^T + blur, M = R_cam R S: its columns are the scaled
     # axes in camera space.
     a = 0.0
@@ -103,8 +139,8 @@ def footprint(cam, width, height, means, quats, scales, opacities, i):
         m0 = (cam[0] * g0 + cam[1] * g1 + cam[2] * g2) * s
         m1 = (cam[3] * g0 + cam[4] * g1 + cam[5] * g2) * s
         m2 = (cam[6] * g0 + cam[7] * g1 + cam[8] * g2) * s
-        t0 = j00 * m0 + j02 * m2
-        t1 = j11 * m1 + j12 * m2
+        t0 = j00 * m0 + j01 * m1 + j02 * m2
+        t1 = j10 * m0 + j11 * m1 + j12 * m2
         a += t0 * t0
         b += t0 * t1
         c += t1 * t1
@@ -117,8 +153,6 @@ def footprint(cam, width, height, means, quats, scales, opacities, i):
     spread = mid * mid - det
     r = 3.0 * math.sqrt(mid + math.sqrt(0.1 if spread < 0.1 else spread))
     r = 1.0 * math.ceil(1e15 if r > 1e15 else r)  # (clamped: a float beyond int64 has no defined conversion)
-    u = fx * (x * iz) + cx
-    v = fy * (y * iz) + cy
     thr = 1.0 * math.log(np.float32(255.0 * o)) + 0.01  # float32 log: the margin covers its rounding
     hx = math.sqrt(2.0 * thr * a)
     hx = r if r < hx else hx
@@ -142,3 +176,28 @@ def footprint(cam, width, height, means, quats, scales, opacities, i):
         return z, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1, 0, 1, 0
     idet = 1.0 / det
     return z, u, v, 0.5 * c * idet, -b * idet, 0.5 * a * idet, thr, u0, u1, v0, v1
+
+
+def pixel_ray(cam, u, v):
+    """The unit world-space direction R^T d of the ray through image point (u, v) (continuous
+    coordinates; a pixel centre is (column + 0.5, row + 0.5)), cam as camera_params; the scalar twin of
+    Camera.camera_rays (a fisheye: 10 clamped Newton steps for theta, as fisheye_undistort)."""
+    mx = (u - cam[14]) / cam[12]
+    my = (v - cam[15]) / cam[13]
+    if cam[23] == 0.0:
+        n = 1.0 / math.sqrt(mx * mx + my * my + 1.0)
+        dx, dy, dz = mx * n, my * n, n
+    else:
+        theta_d = math.sqrt(mx * mx + my * my)
+        theta = cam[28] if theta_d > cam[28] else theta_d
+        for _ in range(10):
+            t2 = theta * theta
+            slope = 1.0 + t2 * (3.0 * cam[24] + t2 * (5.0 * cam[25] + t2 * (7.0 * cam[26] + t2 * 9.0 * cam[27])))
+            if slope > 0.0:
+                theta -= (theta * (1.0 + t2 * (cam[24] + t2 * (cam[25] + t2 * (cam[26] + t2 * cam[27]))))
+                          - theta_d) / slope
+            theta = 0.0 if theta < 0.0 else (cam[28] if theta > cam[28] else theta)
+        sn = math.sin(theta) / theta_d if theta_d > 0.0 else 1.0
+        dx, dy, dz = mx * sn, my * sn, math.cos(theta)
+    return (cam[0] * dx + cam[3] * dy + cam[6] * dz, cam[1] * dx + cam[4] * dy + cam[7] * dz,
+            cam[2] * dx + cam[5] * dy + cam[8] * dz)

@@ -6,7 +6,7 @@ tested against them:
 
     evaluate_oracle(segment, tau)                   the time evaluation (section 2)
     sh_colours_oracle(coeffs, means, centre)        the "sh" colour (section 2, Colour)
-    project_oracle(means, quats, scales, camera)    EWA projection (section 3)
+    project_oracle(means, quats, scales, camera)    EWA projection (section 3; pinhole and fisheye)
     rasterize_oracle(means, quats, scales, opacities, features, camera)   compositing (section 3)
 
 Inputs (any float dtype, converted to float64): means (M, 3) world positions; quats (M, 4) wxyz,
@@ -130,6 +130,29 @@ def quat_to_rotmat(quats: np.ndarray) -> np.ndarray:
     ], axis=1)
 
 
+def fisheye_jacobian(p_cam, camera: Camera) -> np.ndarray:
+    """(M, 3) camera-space points (z > 0) -> (M, 2, 3) Jacobians d(u, v) / d(x, y, z) of the fisheye
+    projection u = fx x theta_d(theta) / r + cx, v = fy y theta_d(theta) / r + cy (spec section 3),
+    r = |(x, y)|, theta = atan2(r, z); on the axis (r <= 1e-7 z), its limit."""
+    k1, k2, k3, k4 = camera.distortion
+    x, y, z = np.asarray(p_cam, dtype=np.float64).T
+    r2 = x * x + y * y
+    r = np.sqrt(r2)
+    theta = np.arctan2(r, z)
+    t2 = theta * theta
+    theta_d = theta * (1 + k1 * t2 + k2 * t2**2 + k3 * t2**3 + k4 * t2**4)
+    slope = 1 + 3 * k1 * t2 + 5 * k2 * t2**2 + 7 * k3 * t2**3 + 9 * k4 * t2**4  # d theta_d / d theta
+    rho2 = r2 + z * z
+    off_axis = r > 1e-7 * z
+    rs, r2s = np.where(off_axis, r, 1.0), np.where(off_axis, r2, 1.0)
+    radial = np.where(off_axis, theta_d / rs, 1 / z)  # theta_d / r
+    ar = np.where(off_axis, (slope * z / rho2 - theta_d / rs) / r2s, (2 * k1 - 2 / 3) / z**3)  # radial'(r) / r
+    J = np.empty((len(x), 2, 3))
+    J[:, 0] = np.stack([camera.fx * (radial + x * x * ar), camera.fx * x * y * ar, -camera.fx * x * slope / rho2], -1)
+    J[:, 1] = np.stack([camera.fy * x * y * ar, camera.fy * (radial + y * y * ar), -camera.fy * y * slope / rho2], -1)
+    return J
+
+
 def project_oracle(means, quats, scales, camera: Camera) -> Projection:
     """Project every Gaussian to the image (EWA splatting, spec section 3). See Projection."""
     means = np.asarray(means, dtype=np.float64).reshape(-1, 3)
@@ -137,14 +160,16 @@ def project_oracle(means, quats, scales, camera: Camera) -> Projection:
     W, H = camera.width, camera.height
     fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
 
-    # Camera space and the near plane.
+    # Camera space, the near plane and (fisheye) the camera's max_angle.
     p_cam = means @ camera.R.T + camera.t
     x, y, z = p_cam.T
     in_front = z > NEAR
+    if camera.model == "fisheye":
+        in_front &= np.arctan2(np.hypot(x, y), z) < camera.max_angle
     zs = np.where(in_front, z, 1.0)  # avoid dividing by zero for culled Gaussians
 
-    # 2D mean: the unclamped pinhole projection.
-    mean2d = np.stack([fx * x / zs + cx, fy * y / zs + cy], axis=1)
+    # 2D mean: the unclamped projection.
+    mean2d, _ = camera.project(means)
 
     # 3D covariance R S S^T R^T, rotated to camera space: W Sigma W^T.
     Rg = quat_to_rotmat(quats)
@@ -152,15 +177,18 @@ def project_oracle(means, quats, scales, camera: Camera) -> Projection:
     sigma = M @ M.transpose(0, 2, 1)
     sigma_cam = camera.R @ sigma @ camera.R.T
 
-    # EWA Jacobian with x/z, y/z clamped to 1.3 x the half field of view (spec, "Jacobian clamp").
-    tan_x, tan_y = W / (2 * fx), H / (2 * fy)
-    xz = np.clip(x / zs, -(cx / fx + JACOBIAN_MARGIN * tan_x), (W - cx) / fx + JACOBIAN_MARGIN * tan_x)
-    yz = np.clip(y / zs, -(cy / fy + JACOBIAN_MARGIN * tan_y), (H - cy) / fy + JACOBIAN_MARGIN * tan_y)
-    J = np.zeros((len(z), 2, 3))
-    J[:, 0, 0] = fx / zs
-    J[:, 0, 2] = -fx * xz / zs
-    J[:, 1, 1] = fy / zs
-    J[:, 1, 2] = -fy * yz / zs
+    if camera.model == "fisheye":
+        J = fisheye_jacobian(np.where(in_front[:, None], p_cam, [0.0, 0.0, 1.0]), camera)
+    else:
+        # EWA Jacobian with x/z, y/z clamped to 1.3 x the half field of view (spec, "Jacobian clamp").
+        tan_x, tan_y = W / (2 * fx), H / (2 * fy)
+        xz = np.clip(x / zs, -(cx / fx + JACOBIAN_MARGIN * tan_x), (W - cx) / fx + JACOBIAN_MARGIN * tan_x)
+        yz = np.clip(y / zs, -(cy / fy + JACOBIAN_MARGIN * tan_y), (H - cy) / fy + JACOBIAN_MARGIN * tan_y)
+        J = np.zeros((len(z), 2, 3))
+        J[:, 0, 0] = fx / zs
+        J[:, 0, 2] = -fx * xz / zs
+        J[:, 1, 1] = fy / zs
+        J[:, 1, 2] = -fy * yz / zs
     cov = J @ sigma_cam @ J.transpose(0, 2, 1)
     a = cov[:, 0, 0] + BLUR
     b = cov[:, 0, 1]

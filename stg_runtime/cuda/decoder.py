@@ -28,7 +28,7 @@ from ..camera import Camera
 from ..decoder import OnnxDecoder
 from ..model import sh_degree_of
 from ..onnx_mlp import read_mlp
-from ..projection import camera_params
+from ..projection import camera_params, pixel_ray
 from ..sh import sh_colour_at
 from .device import simulated
 from .launch import launch
@@ -42,15 +42,14 @@ def _grid2d(W, H, block=16):
     return (-(-W // block), -(-H // block)), (block, block)
 
 
+_pixel_ray = cuda.jit(device=True, inline=True)(pixel_ray)
+
+
 @cuda.jit(device=True)
 def _ray(cam, ix, iy):
-    """The unit world-space ray through pixel centre (ix, iy), R^T d (3 float64; cam as
-    projection.camera_params)."""
-    du = (ix + 0.5 - cam[14]) / cam[12]
-    dv = (iy + 0.5 - cam[15]) / cam[13]
-    n = math.sqrt(du * du + dv * dv + 1.0)
-    return ((cam[0] * du + cam[3] * dv + cam[6]) / n, (cam[1] * du + cam[4] * dv + cam[7]) / n,
-            (cam[2] * du + cam[5] * dv + cam[8]) / n)
+    """The unit world-space ray through pixel centre (ix, iy) (3 float64; cam as
+    projection.camera_params; projection.pixel_ray)."""
+    return _pixel_ray(cam, ix + 0.5, iy + 0.5)
 
 
 @cuda.jit
