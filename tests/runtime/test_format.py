@@ -347,3 +347,61 @@ def test_decoder_with_external_data_is_refused(full_bytes, tmp_path):
     garbage = b"\x0b not onnx"
     header["segments"][0]["decoder"]["data"] = {"offset": len(section), "length": len(garbage), "codec": "raw"}
     refused(seal(header, section + garbage), "segment 0, decoder", tmp_path)
+
+
+# -- camera models (1.2) ----------------------------------------------------------------------------
+
+VECTORS = os.path.join(os.path.dirname(__file__), "..", "..", "formats", "vectors")
+
+
+def fisheye_model():
+    model = make_model()
+    fish = Camera(20.0, 21.0, 31.5, 24.5, 64, 48, model.cameras[1].world_to_camera, "fish", "fisheye",
+                  (0.05, -0.01, 0.002, -5e-4))
+    return Model(model.kind, model.fps, model.segments, [model.cameras[0], fish], model.bounds, model.provenance)
+
+
+@pytest.mark.parametrize("name", ["full", "lite", "sh"])
+def test_pinhole_files_keep_their_bytes(name):
+    """Writing a vector file's model again gives the file's bytes: version 1.0 (1.1 for sh), no camera
+    model in its camera objects."""
+    with open(os.path.join(VECTORS, f"{name}.stg"), "rb") as f:
+        data = f.read()
+    model = stg.loads(data)
+    assert stg.dumps(model, provenance=model.provenance) == data
+    header, _ = split(data)
+    assert all("model" not in c for c in header["cameras"])
+
+
+def test_fisheye_cameras_round_trip_in_a_1_2_file():
+    model = fisheye_model()
+    data = stg.dumps(model)
+    assert struct.unpack_from("<HH", data, 8) == (1, 2)
+    header, _ = split(data)
+    assert header["cameras"][1]["model"] == "fisheye" and "fx" not in header["cameras"][1]
+    assert header["cameras"][1]["intrinsics"]["k4"] == -5e-4
+    again = stg.loads(data)
+    assert again.cameras == model.cameras and again.cameras[1].distortion == (0.05, -0.01, 0.002, -5e-4)
+    assert_models_equal(model, again)
+    # the same model with pinhole cameras only is a 1.0 file
+    plain = Model(model.kind, model.fps, model.segments, model.cameras[:1], model.bounds, model.provenance)
+    assert struct.unpack_from("<HH", stg.dumps(plain), 8) == (1, 0)
+
+
+def old_reader_camera(d):
+    """How 1.0 and 1.1 readers of this project built a camera from its object (Camera.from_dict then):
+    the pinhole intrinsics at the top level, other keys ignored."""
+    return (d["fx"], d["fy"], d["cx"], d["cy"], d["width"], d["height"], d["world_to_camera"], d.get("name", ""))
+
+
+def test_fisheye_cameras_are_refused_by_every_reader_that_cannot_show_them(tmp_path):
+    data = stg.dumps(fisheye_model())
+    header, _ = split(data)
+    old_reader_camera(header["cameras"][0])  # a pinhole reads as before ...
+    with pytest.raises(KeyError, match="fx"):  # ... a fisheye is refused (FormatError "camera 1: invalid")
+        old_reader_camera(header["cameras"][1])
+    refused(craft(data, lambda h: h["cameras"][1].update(model="omnidirectional")),
+            "camera 1: invalid .*unknown camera model 'omnidirectional'", tmp_path)
+    refused(craft(data, lambda h: h["cameras"][1]["intrinsics"].pop("k2")), "camera 1: invalid .*k2", tmp_path)
+    refused(craft(data, lambda h: h["cameras"][1]["intrinsics"].update(k3="x")), "camera 1: invalid", tmp_path)
+    refused(craft(data, lambda h: h["cameras"][1]["intrinsics"].update(fx=0)), "camera 1: invalid .*focal", tmp_path)

@@ -40,6 +40,18 @@ def test_matches_oracle(size, channels, m, seed):
         assert np.all(d[a == 0] == 0)
 
 
+@pytest.mark.parametrize("fov, channels, seed", [(120, 3, 10), (180, 9, 11), (200, 3, 12)])
+def test_fisheye_matches_oracle(fov, channels, seed):
+    """Fisheye cameras up to 200 degrees across, Gaussians up to 100 degrees off the axis (some straddle
+    the image plane, z = 0, where they are culled)."""
+    for arrays, camera, (ref_f, ref_a, ref_d) in clean_scenes(seed, 3, 200, 64, 48, channels, fisheye=fov):
+        f, a, d = rasterize(*arrays, camera)
+        assert np.abs(f - ref_f).max() < TOL and np.abs(a - ref_a).max() < TOL
+        solid = ref_a > 0.5
+        assert solid.any() and (ref_a == 0).any()
+        assert np.all(np.abs(d - ref_d)[solid] < TOL * np.maximum(1.0, ref_d[solid]))
+
+
 def test_matches_oracle_deep():
     """Opaque, many-layered scenes: most pixels reach the transmittance stop, and the final
     transmittance (>= 1e-4 where the stop was taken) matches the reference's to 1% wherever it is

@@ -14,7 +14,7 @@ import os
 import numpy as np
 import pytest
 
-from stg_runtime import Player
+from stg_runtime import Camera, Player
 from stg_runtime.cuda import device
 from stg_runtime.cuda import splat as splat_cuda
 from stg_runtime.cuda.memory import Workspace
@@ -58,6 +58,7 @@ def _assert_matches(got, ref):
     (3, 2, 8, {"opacity": (0.02, 0.3), "size": (2.0, 10.0)}),  # deep: many thin layers per pixel
     (3, 7, 16, {"opacity": (0.6, 1.0), "size": (2.0, 10.0)}),  # opaque: pixels stop (T < 1e-4)
     (17, 3, 16, {"opacity": (0.6, 1.0), "size": (1.0, 8.0)}),  # more channels than one pass holds
+    (3, 10, 16, {"fisheye": 190}),  # a fisheye wider than a hemisphere
 ])
 def test_kernels_match_oracle(channels, seed, tile_size, kwargs):
     arrays, camera, ref = _scene(seed, M, channels, **kwargs)
@@ -211,6 +212,13 @@ def test_device_decoders_match_onnxruntime_on_the_host():
                                OnnxDecoder(other, "clamp")(features, camera), atol=1e-6, rtol=0)
     with pytest.raises(ValueError, match="expects 9 feature channels, got 6"):
         onnx(cuda.to_device(np.zeros((2, 3, 6), np.float32)), camera)
+    # Fisheye cameras: the kernels' pixel rays (projection.pixel_ray) are the host's (Camera.ray_directions).
+    fish = Camera(camera.fx / 2, camera.fy / 2, camera.cx, camera.cy, W, H, camera.world_to_camera,
+                  model="fisheye", distortion=(0.05, -0.01, 0.002, -5e-4))
+    want = OnnxDecoder(segment.decoder, segment.activation)(features, fish)
+    assert np.abs(want - OnnxDecoder(segment.decoder, segment.activation)(features, camera)).max() > 1e-3
+    np.testing.assert_allclose(onnx(features_d, fish).copy_to_host(), want, atol=1e-6, rtol=0)
+    np.testing.assert_allclose(fused(features_d, fish).copy_to_host(), want, atol=1e-5, rtol=0)
 
 
 @needs_kernels
