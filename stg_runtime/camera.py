@@ -178,6 +178,15 @@ class Camera:
         distortion stops increasing (fisheye_max_angle; pi when it never does); for a pinhole, pi / 2."""
         return fisheye_max_angle(self.distortion) if self.model == "fisheye" else np.pi / 2
 
+    @property
+    def vertical_fov(self) -> float:
+        """The vertical field of view (radians) of the camera with its principal point centred: twice
+        the angle off the axis of the middle of the top edge (for a fisheye, it may exceed pi)."""
+        half = 0.5 * self.height / self.fy
+        if self.model == "fisheye":
+            return 2.0 * float(fisheye_undistort(half, self.distortion, self.max_angle))
+        return 2.0 * float(np.arctan(half))
+
     def project(self, points) -> tuple[np.ndarray, np.ndarray]:
         """World points (..., 3) -> (pixel coordinates (..., 2) as (u, v), camera-space depth (...,)).
 
@@ -262,7 +271,7 @@ def orbit(cameras, num_frames: int, target=None, radius=None, width=None, height
     camera centre (the usual orbit for forward-facing rigs); every view looks at `target`, by default a
     point in front of the rig at 4x the rig's spread (at least 1 unit). `radius` defaults to the rig's
     mean spread, at least 5% of the distance to the target. Intrinsics follow the first camera, resized
-    to width x height when given, and so does the camera model (a fisheye rig orbits with its lens).
+    to width x height when given (a fisheye rig's orbit has the first camera's lens).
     """
     cameras = list(cameras)
     if not cameras:
@@ -282,14 +291,15 @@ def orbit(cameras, num_frames: int, target=None, radius=None, width=None, height
     right = np.cross(down, forward)
     right /= np.linalg.norm(right)
     up_axis = np.cross(forward, right)
-    half = 0.5 * base.height / base.fy
-    fov = np.degrees(2 * (half if base.model == "fisheye" else np.arctan(half)))
+    fov = np.degrees(2 * np.arctan(0.5 * base.height / base.fy))
     path = []
     for i in range(num_frames):
         a = 2 * np.pi * i / num_frames
         eye = mid + radius * (np.cos(a) * right + np.sin(a) * up_axis)
-        cam = Camera.look_at(eye, target, -down, fov, base.width, base.height, f"orbit{i:04d}", base.model)
-        path.append(replace(cam, distortion=base.distortion))
+        cam = Camera.look_at(eye, target, -down, fov, base.width, base.height, name=f"orbit{i:04d}")
+        if base.model != "pinhole":  # the same lens, posed
+            cam = replace(base, world_to_camera=cam.world_to_camera, name=cam.name)
+        path.append(cam)
     return path
 
 

@@ -57,6 +57,10 @@ def matrix_to_quaternion(R) -> np.ndarray:
     return -q if q[0] < 0 else q
 
 
+#: The widest vertical field of view (radians) the viewer's pinhole shows a (fisheye) camera with.
+MAX_FOV = float(np.radians(120.0))
+
+
 def camera_from_viser(wxyz, position, fov: float, width: int, height: int, name: str = "viewer") -> Camera:
     """Our Camera for a viser camera state (see the module docstring); width x height in pixels."""
     R_wc = quaternion_to_matrix(wxyz)
@@ -69,10 +73,11 @@ def camera_from_viser(wxyz, position, fov: float, width: int, height: int, name:
 
 def viser_pose(camera: Camera, distance: float = 1.0) -> ViserPose:
     """The viser pose of `camera` (the inverse of camera_from_viser for its pose and vertical field of
-    view; a camera with fx != fy or an off-centre principal point is shown with its vertical fov)."""
+    view; a camera with fx != fy or an off-centre principal point is shown with its vertical fov, a
+    fisheye as a pinhole of its vertical fov up to MAX_FOV)."""
     R_wc = camera.R.T
     centre = camera.center
-    fov = float(2 * np.arctan(0.5 * camera.height / camera.fy))
+    fov = min(camera.vertical_fov, MAX_FOV)
     return ViserPose(matrix_to_quaternion(R_wc), centre, fov, centre + distance * R_wc[:, 2], -R_wc[:, 1])
 
 

@@ -166,3 +166,11 @@ def test_fisheye_look_at_and_orbit_keep_the_lens():
     rig = [Camera(c.fx, c.fy, c.cx, c.cy, 64, 48, c.world_to_camera, model="fisheye", distortion=K4) for c in rig]
     path = orbit(rig, 4)
     assert all(c.model == "fisheye" and c.distortion == K4 and c.fy == pytest.approx(rig[0].fy) for c in path)
+
+
+def test_vertical_fov_of_both_models():
+    assert Camera.look_at([0, 0, 0], [0, 0, 1], [0, -1, 0], 70, 64, 48).vertical_fov == pytest.approx(np.radians(70))
+    wide = Camera.look_at([0, 0, 0], [0, 0, 1], [0, -1, 0], 200, 64, 48, model="fisheye")
+    assert wide.vertical_fov == pytest.approx(np.radians(200))
+    from stg_runtime.viewer.camera import MAX_FOV, viser_pose
+    assert viser_pose(wide).fov == MAX_FOV  # the viewer shows it through a pinhole, as wide as it goes
