@@ -46,6 +46,12 @@ from stg_runtime.spec import MAX_ALPHA, MAX_ALPHA32, MIN_ALPHA, MIN_ALPHA32, T_S
 TILE = 16
 #: Pixels in a tile: the length of each plane of a tile's state.
 PLANE = TILE * TILE
+#: A plane is stored in STRIPS strips of STRIP_WIDTH columns (8 float32 lanes of AVX2), each row-major
+#: (STRIP pixels): a Gaussian's run in a strip is its rows there, STRIP_WIDTH pixels each, so a narrow
+#: Gaussian costs half the lanes of whole tile rows.
+STRIP_WIDTH = 8
+STRIPS = TILE // STRIP_WIDTH
+STRIP = TILE * STRIP_WIDTH
 #: Columns of the per-Gaussian gradient rows that `backward` writes: d mean2d (x, y), d conic (A, B,
 #: C), d opacity, d depth, then d features (C channels).
 GRAD_MEANS2D, GRAD_CONIC, GRAD_OPACITY, GRAD_DEPTH, GRAD_FEATURES = 0, 2, 5, 6, 7
@@ -126,16 +132,33 @@ def _exp_neg_impl(p):
 
 @numba.njit(inline="always")
 def _tile_state(planes, x0, y0, dtype):
-    """A tile's state: `planes` planes of PLANE pixels (row-major within the tile), zeros, except the
+    """A tile's state: `planes` planes of PLANE pixels (in strips, see _pixel), zeros, except the
     planes CENTRE_X and CENTRE_Y, the pixel centres (x0 + column + 0.5, y0 + row + 0.5), held in the
     working dtype (computing them in the loops would mix integers in, and numba promotes int64 with
     float32 to float64), and a spare scalar slot at the end."""
     S = np.zeros(planes * PLANE + 1, dtype)
     for r in range(TILE):
         for l in range(TILE):
-            S[CENTRE_X * PLANE + r * TILE + l] = x0 + l + 0.5
-            S[CENTRE_Y * PLANE + r * TILE + l] = y0 + r + 0.5
+            S[CENTRE_X * PLANE + _pixel(r, l)] = x0 + l + 0.5
+            S[CENTRE_Y * PLANE + _pixel(r, l)] = y0 + r + 0.5
     return S
+
+
+@numba.njit(inline="always")
+def _pixel(r, l):
+    """The index in a plane of the tile's pixel at row r, column l (strip by strip, row-major in each)."""
+    return (l // STRIP_WIDTH) * STRIP + r * STRIP_WIDTH + l % STRIP_WIDTH
+
+
+@numba.njit(inline="always")
+def _run(rects, g, x0, y0, strip):
+    """(start, length) of Gaussian g's run in the tile at (x0, y0): the rows of its rectangle in `strip`,
+    whole strip rows (its columns are masked by the pixel centres); length 0 when it misses the strip."""
+    c0 = x0 + strip * STRIP_WIDTH
+    if rects[g, 1] < c0 or rects[g, 0] > c0 + STRIP_WIDTH - 1:
+        return 0, 0
+    top = max(rects[g, 2], y0) - y0
+    return strip * STRIP + top * STRIP_WIDTH, (min(rects[g, 3], y0 + TILE - 1) - y0 - top + 1) * STRIP_WIDTH
 
 
 @numba.njit(inline="always")
@@ -143,6 +166,26 @@ def _as_dtype(S, value):
     """value (an integer) in the dtype of S, through its spare slot."""
     S[S.shape[0] - 1] = value
     return S[S.shape[0] - 1]
+
+
+@numba.njit(inline="always")
+def _padded_channels(channels):
+    """The feature planes of a tile's state: channels rounded up to a multiple of 3, at least 3 (the
+    kernels take channels three at a time; the padding planes stay zero)."""
+    return max(3, -(-channels // 3) * 3)
+
+
+@numba.njit(inline="always")
+def _feature(features, g, ch, zero):
+    """features[g, ch], or zero for a padding channel (ch >= C)."""
+    return features[g, ch] if ch < features.shape[1] else zero
+
+
+@numba.njit(inline="always")
+def _add_feature(G, g, ch, value, channels):
+    """G[g, GRAD_FEATURES + ch] += value, for a real channel (ch < channels)."""
+    if ch < channels:
+        G[g, GRAD_FEATURES + ch] += value
 
 
 #: Planes of a tile's state shared by both kernels: the pixel centres.
@@ -165,17 +208,18 @@ def forward(means2d, conic, opacity, features, depth, rects, tile_start, tile_id
     transmittance, negated where the pixel stopped; n_last (H, W) int32: how many list entries the
     pixel went through up to its last added contribution. H and W are padded to whole tiles.
 
-    A tile's state is one array of planes (F_*). Per Gaussian, the rows of its rectangle in the tile
-    are one run of pixels, composited by one branch-free loop (pixels outside the rectangle masked)
+    A tile's state is one array of planes (F_*). Per Gaussian and strip, the rows of its rectangle are
+    one run of pixels (_run), composited by one branch-free loop (pixels outside the rectangle masked)
     that reads and writes the planes at constant offsets, which LLVM vectorises without aliasing
-    checks; then one loop per channel."""
+    checks, the first three feature channels with it; then one loop per three further channels."""
     half, one, zero, max_alpha, min_alpha, t_stop = consts[0], consts[1], consts[2], consts[3], consts[4], consts[5]
     channels = features.shape[1]
+    c3 = _padded_channels(channels)
     for i in numba.prange(tile_order.shape[0]):
         tile = tile_order[i]
         x0 = (tile % tiles_x) * TILE
         y0 = (tile // tiles_x) * TILE
-        S = _tile_state(F_FEATURES + channels, x0, y0, out.dtype)
+        S = _tile_state(F_FEATURES + c3, x0, y0, out.dtype)
         S[F_T * PLANE:(F_T + 1) * PLANE] = one
         n_live = PLANE
         start = tile_start[tile]
@@ -183,49 +227,59 @@ def forward(means2d, conic, opacity, features, depth, rects, tile_start, tile_id
             g = tile_ids[k]
             mx, my, a, b, c = means2d[g, 0], means2d[g, 1], conic[g, 0], conic[g, 1], conic[g, 2]
             o, z = opacity[g], depth[g]
-            left = S[CENTRE_X * PLANE + max(rects[g, 0] - x0, 0)]  # the rectangle's first and last columns
-            right = S[CENTRE_X * PLANE + min(rects[g, 1] - x0, TILE - 1)]
+            f0, f1, f2 = _feature(features, g, 0, zero), _feature(features, g, 1, zero), _feature(features, g, 2, zero)
+            # the rectangle's first and last columns
+            left = S[CENTRE_X * PLANE + _pixel(0, max(rects[g, 0] - x0, 0))]
+            right = S[CENTRE_X * PLANE + _pixel(0, min(rects[g, 1] - x0, TILE - 1))]
             count = _as_dtype(S, k - start + 1)
-            lo = (max(rects[g, 2], y0) - y0) * TILE
-            V = S[lo:]
-            stops = 0
-            for l in range((min(rects[g, 3], y0 + TILE - 1) - y0 + 1) * TILE - lo):
-                px = V[l + CENTRE_X * PLANE]
-                dx = px - mx
-                dy = V[l + CENTRE_Y * PLANE] - my
-                power = half * (a * dx * dx + c * dy * dy) + b * dx * dy
-                alpha = min(max_alpha, o * exp_neg(power))
-                t = V[l + F_T * PLANE]
-                ok = (px >= left) & (px <= right) & (t > zero) & (power >= zero) & (alpha >= min_alpha)
-                t_next = t * (one - alpha)
-                stop = ok & (t_next < t_stop)
-                add = ok & (t_next >= t_stop)
-                w = alpha * t if add else zero
-                V[l + F_T * PLANE] = t_next if add else (-t if stop else t)
-                V[l + F_COUNT * PLANE] = count if add else V[l + F_COUNT * PLANE]
-                V[l + F_WEIGHT * PLANE] = w
-                V[l + F_ALPHA * PLANE] += w
-                V[l + F_DEPTH * PLANE] += w * z
-                stops += stop
-            n_live -= stops
-            for ch in range(channels):
-                f = features[g, ch]
-                F = S[(F_FEATURES + ch) * PLANE + lo:]
-                for l in range((min(rects[g, 3], y0 + TILE - 1) - y0 + 1) * TILE - lo):
-                    F[l] += V[l + F_WEIGHT * PLANE] * f
+            for strip in range(STRIPS):
+                lo, n = _run(rects, g, x0, y0, strip)
+                V = S[lo:]
+                stops = 0
+                for l in range(n):
+                    px = V[l + CENTRE_X * PLANE]
+                    dx = px - mx
+                    dy = V[l + CENTRE_Y * PLANE] - my
+                    power = half * (a * dx * dx + c * dy * dy) + b * dx * dy
+                    alpha = min(max_alpha, o * exp_neg(power))
+                    t = V[l + F_T * PLANE]
+                    ok = (px >= left) & (px <= right) & (t > zero) & (power >= zero) & (alpha >= min_alpha)
+                    t_next = t * (one - alpha)
+                    stop = ok & (t_next < t_stop)
+                    add = ok & (t_next >= t_stop)
+                    w = alpha * t if add else zero
+                    V[l + F_T * PLANE] = t_next if add else (-t if stop else t)
+                    V[l + F_COUNT * PLANE] = count if add else V[l + F_COUNT * PLANE]
+                    V[l + F_WEIGHT * PLANE] = w
+                    V[l + F_ALPHA * PLANE] += w
+                    V[l + F_DEPTH * PLANE] += w * z
+                    V[l + F_FEATURES * PLANE] += w * f0
+                    V[l + (F_FEATURES + 1) * PLANE] += w * f1
+                    V[l + (F_FEATURES + 2) * PLANE] += w * f2
+                    stops += stop
+                n_live -= stops
+                for ch in range(3, c3, 3):  # further channels, three at a time
+                    fa, fb, fc = _feature(features, g, ch, zero), _feature(features, g, ch + 1, zero), \
+                        _feature(features, g, ch + 2, zero)
+                    F = V[(F_FEATURES + ch) * PLANE:]
+                    for l in range(n):
+                        w = V[l + F_WEIGHT * PLANE]
+                        F[l] += w * fa
+                        F[l + PLANE] += w * fb
+                        F[l + 2 * PLANE] += w * fc
             if n_live == 0:
                 break
         for r in range(TILE):
             y = y0 + r
             for l in range(TILE):
-                p = r * TILE + l
+                p = _pixel(r, l)
                 trans[y, x0 + l] = S[F_T * PLANE + p]
                 n_last[y, x0 + l] = np.int32(S[F_COUNT * PLANE + p])
                 out[channels, y, x0 + l] = S[F_ALPHA * PLANE + p]
                 out[channels + 1, y, x0 + l] = S[F_DEPTH * PLANE + p]
             for ch in range(channels):
                 for l in range(TILE):
-                    out[ch, y, x0 + l] = S[(F_FEATURES + ch) * PLANE + r * TILE + l]
+                    out[ch, y, x0 + l] = S[(F_FEATURES + ch) * PLANE + _pixel(r, l)]
 
 
 @numba.njit(parallel=True, cache=True, fastmath={"contract", "reassoc", "nsz"})
@@ -237,23 +291,25 @@ def backward(means2d, conic, opacity, features, depth, rects, tile_start, tile_i
 
     trans (H, W): the forward pass's final transmittance, made non-negative; n_last (H, W) from the
     forward pass; grad_out (C + 2, H, W): dL/d out, planes as forward's `out`; all padded to whole
-    tiles. A tile's state is one array of planes (B_*), walked as in `forward`: per Gaussian, g . v
-    over its run of pixels, then one branch-free loop (vectorised, its sums reassociated), then one
-    sum per channel."""
+    tiles. A tile's state is one array of planes (B_*), walked as in `forward`: per Gaussian and strip,
+    g . v over its run of pixels less the first three feature channels, then one branch-free loop
+    (vectorised, its sums reassociated, those three channels' sums with it); then one sum per three
+    further channels over its runs."""
     half, one, zero, max_alpha, min_alpha = consts[0], consts[1], consts[2], consts[3], consts[4]
     channels = features.shape[1]
+    c3 = _padded_channels(channels)
     for q in numba.prange(part_start.shape[0] - 1):
         G = grads[q]
         for j in range(part_start[q], part_start[q + 1]):
             tile = parts[j]
             x0 = (tile % tiles_x) * TILE
             y0 = (tile // tiles_x) * TILE
-            S = _tile_state(B_GFEATURES + channels, x0, y0, grads.dtype)
+            S = _tile_state(B_GFEATURES + c3, x0, y0, grads.dtype)
             deepest = 0
             for r in range(TILE):
                 y = y0 + r
                 for l in range(TILE):
-                    p = r * TILE + l
+                    p = _pixel(r, l)
                     S[B_T * PLANE + p] = trans[y, x0 + l]
                     S[B_COUNT * PLANE + p] = n_last[y, x0 + l]
                     S[B_GALPHA * PLANE + p] = grad_out[channels, y, x0 + l]
@@ -261,60 +317,83 @@ def backward(means2d, conic, opacity, features, depth, rects, tile_start, tile_i
                     deepest = max(deepest, n_last[y, x0 + l])
                 for ch in range(channels):
                     for l in range(TILE):
-                        S[(B_GFEATURES + ch) * PLANE + r * TILE + l] = grad_out[ch, y, x0 + l]
+                        S[(B_GFEATURES + ch) * PLANE + _pixel(r, l)] = grad_out[ch, y, x0 + l]
             start = tile_start[tile]
             for k in range(start + deepest - 1, start - 1, -1):
                 g = tile_ids[k]
                 mx, my, a, b, c = means2d[g, 0], means2d[g, 1], conic[g, 0], conic[g, 1], conic[g, 2]
                 o, z = opacity[g], depth[g]
-                left = S[CENTRE_X * PLANE + max(rects[g, 0] - x0, 0)]
-                right = S[CENTRE_X * PLANE + min(rects[g, 1] - x0, TILE - 1)]
+                f0, f1, f2 = _feature(features, g, 0, zero), _feature(features, g, 1, zero), \
+                    _feature(features, g, 2, zero)
+                left = S[CENTRE_X * PLANE + _pixel(0, max(rects[g, 0] - x0, 0))]
+                right = S[CENTRE_X * PLANE + _pixel(0, min(rects[g, 1] - x0, TILE - 1))]
                 entry = _as_dtype(S, k - start)
-                lo = (max(rects[g, 2], y0) - y0) * TILE
-                n = (min(rects[g, 3], y0 + TILE - 1) - y0 + 1) * TILE - lo
-                V = S[lo:]
-                for l in range(n):
-                    V[l + B_GV * PLANE] = V[l + B_GALPHA * PLANE] + V[l + B_GDEPTH * PLANE] * z
-                for ch in range(channels):
-                    f = features[g, ch]
-                    F = S[(B_GFEATURES + ch) * PLANE + lo:]
+                s_o = s_mx = s_my = s_a = s_b = s_c = s_z = s_f0 = s_f1 = s_f2 = zero
+                for strip in range(STRIPS):
+                    lo, n = _run(rects, g, x0, y0, strip)
+                    if n == 0:
+                        continue
+                    V = S[lo:]
+                    # g . v less its first three feature channels (added in the main loop)
                     for l in range(n):
-                        V[l + B_GV * PLANE] += F[l] * f
-                s_o = s_mx = s_my = s_a = s_b = s_c = s_z = zero
-                for l in range(n):
-                    px = V[l + CENTRE_X * PLANE]
-                    dx = px - mx
-                    dy = V[l + CENTRE_Y * PLANE] - my
-                    power = half * (a * dx * dx + c * dy * dy) + b * dx * dy
-                    e = exp_neg(power)
-                    raw = o * e
-                    alpha = min(max_alpha, raw)
-                    act = ((px >= left) & (px <= right) & (entry < V[l + B_COUNT * PLANE]) & (power >= zero)
-                           & (alpha >= min_alpha))
-                    t_after = V[l + B_T * PLANE]
-                    inv = one / (one - alpha)
-                    t_before = t_after * inv
-                    w = alpha * t_before if act else zero
-                    gv = V[l + B_GV * PLANE]
-                    d_alpha = t_before * gv - V[l + B_SUFFIX * PLANE] * inv
-                    V[l + B_SUFFIX * PLANE] += w * gv
-                    V[l + B_T * PLANE] = t_before if act else t_after
-                    V[l + B_WEIGHT * PLANE] = w
-                    s_z += w * V[l + B_GDEPTH * PLANE]
-                    d_alpha = d_alpha if act & (raw <= max_alpha) else zero  # capped: no gradient
-                    s_o += d_alpha * (e if act else zero)
-                    d_power = -d_alpha * alpha
-                    s_mx -= d_power * (a * dx + b * dy)
-                    s_my -= d_power * (b * dx + c * dy)
-                    s_a += d_power * half * dx * dx
-                    s_b += d_power * dx * dy
-                    s_c += d_power * half * dy * dy
-                for ch in range(channels):
-                    F = S[(B_GFEATURES + ch) * PLANE + lo:]
-                    s_f = zero
+                        V[l + B_GV * PLANE] = V[l + B_GALPHA * PLANE] + V[l + B_GDEPTH * PLANE] * z
+                    for ch in range(3, c3, 3):
+                        fa, fb, fc = _feature(features, g, ch, zero), _feature(features, g, ch + 1, zero), \
+                            _feature(features, g, ch + 2, zero)
+                        F = V[(B_GFEATURES + ch) * PLANE:]
+                        for l in range(n):
+                            V[l + B_GV * PLANE] += F[l] * fa + F[l + PLANE] * fb + F[l + 2 * PLANE] * fc
                     for l in range(n):
-                        s_f += V[l + B_WEIGHT * PLANE] * F[l]
-                    G[g, GRAD_FEATURES + ch] += s_f
+                        px = V[l + CENTRE_X * PLANE]
+                        dx = px - mx
+                        dy = V[l + CENTRE_Y * PLANE] - my
+                        power = half * (a * dx * dx + c * dy * dy) + b * dx * dy
+                        e = exp_neg(power)
+                        raw = o * e
+                        alpha = min(max_alpha, raw)
+                        act = ((px >= left) & (px <= right) & (entry < V[l + B_COUNT * PLANE]) & (power >= zero)
+                               & (alpha >= min_alpha))
+                        t_after = V[l + B_T * PLANE]
+                        inv = one / (one - alpha)
+                        t_before = t_after * inv
+                        w = alpha * t_before if act else zero
+                        g0 = V[l + B_GFEATURES * PLANE]
+                        g1 = V[l + (B_GFEATURES + 1) * PLANE]
+                        g2 = V[l + (B_GFEATURES + 2) * PLANE]
+                        gv = V[l + B_GV * PLANE] + g0 * f0 + g1 * f1 + g2 * f2
+                        d_alpha = t_before * gv - V[l + B_SUFFIX * PLANE] * inv
+                        V[l + B_SUFFIX * PLANE] += w * gv
+                        V[l + B_T * PLANE] = t_before if act else t_after
+                        V[l + B_WEIGHT * PLANE] = w
+                        s_z += w * V[l + B_GDEPTH * PLANE]
+                        s_f0 += w * g0
+                        s_f1 += w * g1
+                        s_f2 += w * g2
+                        d_alpha = d_alpha if act & (raw <= max_alpha) else zero  # capped: no gradient
+                        s_o += d_alpha * (e if act else zero)
+                        d_power = -d_alpha * alpha
+                        s_mx -= d_power * (a * dx + b * dy)
+                        s_my -= d_power * (b * dx + c * dy)
+                        s_a += d_power * half * dx * dx
+                        s_b += d_power * dx * dy
+                        s_c += d_power * half * dy * dy
+                for ch in range(3, c3, 3):  # further channels, three at a time
+                    s_fa = s_fb = s_fc = zero
+                    for strip in range(STRIPS):
+                        lo, n = _run(rects, g, x0, y0, strip)
+                        V = S[lo:]
+                        F = V[(B_GFEATURES + ch) * PLANE:]
+                        for l in range(n):
+                            w = V[l + B_WEIGHT * PLANE]
+                            s_fa += w * F[l]
+                            s_fb += w * F[l + PLANE]
+                            s_fc += w * F[l + 2 * PLANE]
+                    _add_feature(G, g, ch, s_fa, channels)
+                    _add_feature(G, g, ch + 1, s_fb, channels)
+                    _add_feature(G, g, ch + 2, s_fc, channels)
+                _add_feature(G, g, 0, s_f0, channels)
+                _add_feature(G, g, 1, s_f1, channels)
+                _add_feature(G, g, 2, s_f2, channels)
                 G[g, GRAD_MEANS2D] += s_mx
                 G[g, GRAD_MEANS2D + 1] += s_my
                 G[g, GRAD_CONIC] += s_a

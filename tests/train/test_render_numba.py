@@ -45,7 +45,12 @@ def _border_scene(seed=0, n=40):
     return cam, [means, quats, scales, opac, feats]
 
 
-@pytest.mark.parametrize("seed,width,height,channels,dense", CASES)
+#: Beside CASES' 3 and 9 channels: channel counts that are not a multiple of three (the kernels take
+#: channels three at a time, the first three in the main loop).
+ODD_CHANNELS = [(3, 40, 30, 1, True), (4, 40, 30, 5, False), (5, 33, 21, 13, True)]
+
+
+@pytest.mark.parametrize("seed,width,height,channels,dense", CASES + ODD_CHANNELS)
 def test_matches_oracle_and_torch_splatter(seed, width, height, channels, dense):
     cam, arrays = _scene(seed, width, height, channels, n=150 if dense else 80, dense=dense)
     ref = rasterize_oracle(*arrays, cam)
