@@ -140,7 +140,7 @@ class Trainer:
             self.box = np.asarray(_state["box"])
             self.step = int(_state["step"])
             self.rng = np.random.default_rng()
-        self.optimizer = torch.optim.Adam(self.params.param_groups(self.lr, self.extent), eps=1e-15)
+        self.optimizer = torch.optim.Adam(self.params.param_groups(self.lr, self.extent), eps=1e-15, fused=True)
         self.strategies: list[Strategy] = [DensityControl(self.schedule, self.extent, self.thresholds, box=self.box)]
         if config.guided:
             self.strategies.append(GuidedSampling(self.schedule))
