@@ -111,3 +111,23 @@ def test_novel_views_of_any_camera():
     assert ds.cameras == cams and ds.test_cameras == [0]
     np.testing.assert_array_equal(ds.frame(0, 0), np.rint(scene.render(cams[0], 0.0) * 255).astype(np.uint8))
     assert isinstance(ds.cameras[0], Camera) and cv2 is not None
+
+
+def test_stg_eval_renders_the_datasets_fisheye_camera(tmp_path, monkeypatch, capsys):
+    """stg-eval renders the held-out camera with the dataset's camera model (here a fisheye)."""
+    from stg_runtime.demo import demo_model
+    from stg_runtime.format import save
+    from stg_runtime.player import Player
+    from stg_train.cli.eval import main as eval_main
+
+    data = tmp_path / "dome"
+    assert synth_main([str(data), "--fisheye", "150", "--cameras", "3", "--frames", "2", "--size", "32x24",
+                       "--quiet", "--no-png"]) == 0
+    save(demo_model("lite", fps=30.0, num_frames=2), tmp_path / "m.stg")
+    seen = []
+    render = Player.render
+    monkeypatch.setattr(Player, "render", lambda self, camera, *a, **k: seen.append(camera) or render(self, camera, *a, **k))
+    assert eval_main([str(tmp_path / "m.stg"), str(data), "--no-lpips", "--quiet"]) == 0
+    held_out = load_dataset(data).cameras[0]
+    assert seen and all(c == held_out for c in seen) and held_out.model == "fisheye"
+    assert '"psnr"' in capsys.readouterr().out
