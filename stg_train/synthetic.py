@@ -52,6 +52,8 @@ AMBIENT, DIFFUSE = 0.3, 0.75
 TARGET = np.array([0.0, 0.3, 4.0])  # where every rig camera looks
 #: The dome rig (SyntheticScene.dome_cameras): its sphere's centre and radius, and its cap's half-angle.
 DOME_CENTRE, DOME_RADIUS, DOME_POLAR_DEG = np.array([0.0, 0.0, -0.9]), 0.9, 25.0
+#: (polar, azimuth) degrees of two novel views on the dome, between the default 12-camera dome's cameras.
+DOME_NOVEL_VIEWS = ((11.0, 70.0), (18.0, 250.0))
 _EPS = 1e-6
 _INF = np.inf
 
@@ -287,6 +289,14 @@ class SyntheticScene:
         golden = 180.0 * (3.0 - np.sqrt(5.0))
         return [self.dome_camera(DOME_POLAR_DEG * np.sqrt(k / max(num_cameras - 1, 1)), k * golden, width, height,
                                  hfov_deg, model, distortion, name=f"camera_{k + 1:04d}") for k in range(num_cameras)]
+
+    def dome_novel_cameras(self, width: int = 160, height: int = 120, hfov_deg: float = 90.0,
+                           model: str = "pinhole", views=DOME_NOVEL_VIEWS) -> list[Camera]:
+        """Novel views inside the dome rig: dome_camera at each (polar, azimuth) of `views` (degrees;
+        by default between the 12-camera dome's cameras), named "novel0", ...; pinholes by default (the
+        views novel_view_dataset renders to compare fisheye- and pinhole-trained models)."""
+        return [self.dome_camera(polar, azimuth, width, height, hfov_deg, model, name=f"novel{k}")
+                for k, (polar, azimuth) in enumerate(views)]
 
     # -- ray tracing -----------------------------------------------------------------------------
     def _solids(self, t: float):

@@ -106,9 +106,13 @@ def test_novel_views_of_any_camera():
     from stg_train.synthetic import novel_view_dataset
 
     scene = SyntheticScene()
-    cams = [scene.dome_camera(10.0, 90.0, W, H, 120.0, "pinhole", name="between")]
+    cams = scene.dome_novel_cameras(W, H)
+    rig = scene.dome_cameras(12, W, H)
+    spacing = min(np.linalg.norm(a.center - b.center) for i, a in enumerate(rig) for b in rig[i + 1:])
+    for cam in cams:  # between the rig's cameras, not on one
+        assert cam.model == "pinhole" and 0.02 < min(np.linalg.norm(cam.center - r.center) for r in rig) < spacing
     ds = novel_view_dataset(scene, 1, 30.0, cameras=cams)
-    assert ds.cameras == cams and ds.test_cameras == [0]
+    assert ds.cameras == cams and ds.test_cameras == [0, 1]
     np.testing.assert_array_equal(ds.frame(0, 0), np.rint(scene.render(cams[0], 0.0) * 255).astype(np.uint8))
     assert isinstance(ds.cameras[0], Camera) and cv2 is not None
 
