@@ -1,5 +1,7 @@
-"""A small dynamic scene, ray traced analytically (numpy, vectorised over pixels), and a writer of the
-Neural 3D Video (N3V) layout for it. Used by tests, demos and benchmarks in place of real datasets.
+"""A small dynamic scene, ray traced analytically (numpy, vectorised over pixels), and writers of the
+Neural 3D Video (N3V) layout (a forward-facing pinhole rig) and of the Google Immersive layout (an
+outward-facing dome of fisheye, or pinhole, cameras) for it. Used by tests, demos and benchmarks in
+place of real datasets.
 
 This is not Gaussian splatting: every pixel centre casts one ray (or `supersample**2` rays) that is
 intersected exactly with the scene's primitives.
@@ -28,11 +30,13 @@ import cv2
 import numpy as np
 
 from stg_runtime.atomic import write_atomic
-from stg_runtime.camera import Camera
+from stg_runtime.camera import Camera, fisheye_distort
 
 from .data.dataset import Dataset
+from .data.immersive import MODELS_FILE, entry_from_camera
 
-__all__ = ["SyntheticScene", "write_n3v", "OBJECT_NAMES", "llff_pose", "NOVEL_VIEWS", "novel_view_dataset"]
+__all__ = ["SyntheticScene", "write_n3v", "write_immersive", "OBJECT_NAMES", "llff_pose", "NOVEL_VIEWS",
+           "novel_view_dataset"]
 
 #: Rig positions (x, y world units from cam00) of two novel views inside the default 12-camera rig
 #: (which spans x in [-0.8, 0.8], y in [-0.3, 0.3]), between its cameras.
@@ -46,6 +50,10 @@ ROOM_MAX = np.array([3.0, 1.5, 7.0])
 LIGHT = np.array([-1.2, -1.7, 1.8])  # point light position (world)
 AMBIENT, DIFFUSE = 0.3, 0.75
 TARGET = np.array([0.0, 0.3, 4.0])  # where every rig camera looks
+#: The dome rig (SyntheticScene.dome_cameras): its sphere's centre and radius, and its cap's half-angle.
+DOME_CENTRE, DOME_RADIUS, DOME_POLAR_DEG = np.array([0.0, 0.0, -0.9]), 0.9, 25.0
+#: (polar, azimuth) degrees of two novel views on the dome, between the default 12-camera dome's cameras.
+DOME_NOVEL_VIEWS = ((11.0, 70.0), (18.0, 250.0))
 _EPS = 1e-6
 _INF = np.inf
 
@@ -242,6 +250,54 @@ class SyntheticScene:
         w2c[:3, :3], w2c[:3, 3] = R, -R @ eye
         return Camera(focal, focal, width / 2, height / 2, width, height, w2c, name=name)
 
+    @staticmethod
+    def dome_camera(polar_deg: float, azimuth_deg: float, width: int = 160, height: int = 120,
+                    hfov_deg: float = 120.0, model: str = "fisheye", distortion=(0.0, 0.0, 0.0, 0.0),
+                    name: str = "") -> Camera:
+        """A camera of the outward-facing dome rig (dome_cameras) at `polar_deg` degrees from the dome's
+        axis (+z, towards the scene) and `azimuth_deg` around it, on the sphere of radius DOME_RADIUS
+        around DOME_CENTRE, looking outwards (away from the centre), image up = world up (-y).
+
+        hfov_deg: horizontal field of view, the angle between the rays through the middles of the image's
+        left and right edges: fisheye (OpenCV's model with `distortion` k1..k4; all zero: equidistant)
+        f = (width / 2) / theta_d(hfov / 2), pinhole f = (width / 2) / tan(hfov / 2) (below 180). fx = fy,
+        principal point at the image centre."""
+        polar, azimuth = np.radians(polar_deg), np.radians(azimuth_deg)
+        out = np.array([np.sin(polar) * np.cos(azimuth), np.sin(polar) * np.sin(azimuth), np.cos(polar)])
+        eye = DOME_CENTRE + DOME_RADIUS * out
+        half = np.radians(hfov_deg) / 2
+        if model == "fisheye":
+            distortion = tuple(float(k) for k in distortion)
+            f = 0.5 * width / float(fisheye_distort(half, distortion))
+        else:
+            if not half < np.pi / 2:
+                raise ValueError(f"a pinhole camera's field of view must be below 180 degrees, got {hfov_deg:g}")
+            f, distortion = 0.5 * width / np.tan(half), ()
+        pose = Camera.look_at(eye, eye + out, (0.0, -1.0, 0.0), 60.0, width, height)
+        return Camera(f, f, width / 2, height / 2, width, height, pose.world_to_camera, name, model, distortion)
+
+    def dome_cameras(self, num_cameras: int = 12, width: int = 160, height: int = 120, hfov_deg: float = 120.0,
+                     model: str = "fisheye", distortion=(0.0, 0.0, 0.0, 0.0)) -> list[Camera]:
+        """An outward-facing dome rig like the Google Immersive dataset's: `num_cameras` cameras on a cap
+        of the sphere of radius DOME_RADIUS around DOME_CENTRE, up to DOME_POLAR_DEG degrees from its axis
+        (+z), each looking outwards (dome_camera). Camera k (named camera_<k+1:04d>) sits at polar angle
+        DOME_POLAR_DEG x sqrt(k / (num_cameras - 1)) and azimuth k x 137.5 degrees (a sunflower spiral:
+        evenly spread); camera_0001 is the centre camera, on the axis, at the origin. Every camera sees
+        the scene's objects. model "pinhole" gives the same rig with pinhole lenses of the same hfov_deg."""
+        if num_cameras < 1:
+            raise ValueError("num_cameras must be at least 1")
+        golden = 180.0 * (3.0 - np.sqrt(5.0))
+        return [self.dome_camera(DOME_POLAR_DEG * np.sqrt(k / max(num_cameras - 1, 1)), k * golden, width, height,
+                                 hfov_deg, model, distortion, name=f"camera_{k + 1:04d}") for k in range(num_cameras)]
+
+    def dome_novel_cameras(self, width: int = 160, height: int = 120, hfov_deg: float = 90.0,
+                           model: str = "pinhole", views=DOME_NOVEL_VIEWS) -> list[Camera]:
+        """Novel views inside the dome rig: dome_camera at each (polar, azimuth) of `views` (degrees;
+        by default between the 12-camera dome's cameras), named "novel0", ...; pinholes by default (the
+        views novel_view_dataset renders to compare fisheye- and pinhole-trained models)."""
+        return [self.dome_camera(polar, azimuth, width, height, hfov_deg, model, name=f"novel{k}")
+                for k, (polar, azimuth) in enumerate(views)]
+
     # -- ray tracing -----------------------------------------------------------------------------
     def _solids(self, t: float):
         """Opaque objects at time t as (name, kind, params)."""
@@ -375,15 +431,14 @@ class SyntheticScene:
 
     @staticmethod
     def _rays(camera: Camera, supersample: int) -> np.ndarray:
-        """(S, H*W, 3) unit world directions through S = supersample^2 sub-pixel positions."""
+        """(S, H*W, 3) unit world directions through S = supersample^2 sub-pixel positions, through the
+        camera's lens (Camera.camera_rays: pinhole or fisheye)."""
         offs = (np.arange(supersample) + 0.5) / supersample
         out = []
         for oy in offs:
             for ox in offs:
-                u = (np.arange(camera.width) + ox - camera.cx) / camera.fx
-                v = (np.arange(camera.height) + oy - camera.cy) / camera.fy
-                dc = np.stack(np.broadcast_arrays(u[None, :], v[:, None], 1.0), axis=-1).reshape(-1, 3)
-                dc /= np.linalg.norm(dc, axis=-1, keepdims=True)
+                u, v = np.arange(camera.width) + ox, np.arange(camera.height) + oy
+                dc = camera.camera_rays(u[None, :], v[:, None]).reshape(-1, 3)
                 out.append(dc @ camera.R)
         return np.stack(out)
 
@@ -451,19 +506,61 @@ def _to_uint8(rgb: np.ndarray) -> np.ndarray:
 
 
 def _remove_layout_files(out: Path) -> None:
-    """Delete camXX.mp4 and frames/camXX/*.png in out (so an earlier, larger run leaves nothing behind)."""
-    for video in out.glob("cam*.mp4"):
-        if re.fullmatch(r"cam\d+\.mp4", video.name):
+    """Delete the files of either synthetic layout in out (so an earlier, larger run, or a run in the other
+    layout, leaves nothing behind): N3V's camXX.mp4, frames/camXX/*.png and poses_bounds.npy, the
+    Immersive layout's camera_NNNN.mp4, camera_NNNN/*.png and models.json."""
+    for video in list(out.glob("cam*.mp4")):
+        if re.fullmatch(r"cam(era_)?\d+\.mp4", video.name):
             video.unlink()
-    for folder in out.glob("frames/cam*"):
-        if folder.is_dir() and re.fullmatch(r"cam\d+", folder.name):
+    folders = [f for f in out.glob("frames/cam*") if re.fullmatch(r"cam\d+", f.name)]
+    folders += [f for f in out.glob("camera_*") if re.fullmatch(r"camera_\d+", f.name)]
+    for folder in folders:
+        if folder.is_dir():
             for png in folder.glob("*.png"):
                 png.unlink()
             if not any(folder.iterdir()):
                 folder.rmdir()
+    for name in ("poses_bounds.npy", "models.json"):
+        if (out / name).is_file():
+            (out / name).unlink()
 
 
 VIDEO_CODEC = "mp4v"  # MPEG-4 Part 2: written and read back by OpenCV's bundled FFmpeg
+
+
+def _write_camera(scene: SyntheticScene, cam: Camera, video: Path, png_folder: Path | None, num_frames: int,
+                  fps: float, supersample: int, tick) -> tuple[float, float]:
+    """Render frames k / fps, k < num_frames, of `cam` into `video` ('mp4v') and, when png_folder is
+    given, <png_folder>/<k:06d>.png; tick() after each frame. Returns (near, far): the smallest and
+    largest depth the camera sees."""
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*VIDEO_CODEC), float(fps), (cam.width, cam.height))
+    if not writer.isOpened():
+        raise RuntimeError(f"{video}: OpenCV cannot write '{VIDEO_CODEC}' video here")
+    if png_folder is not None:
+        png_folder.mkdir(parents=True, exist_ok=True)
+    near, far = np.inf, 0.0
+    try:
+        for k in range(num_frames):
+            rgb, depth = scene.render(cam, k / fps, return_depth=True, supersample=supersample)
+            near, far = min(near, float(depth.min())), max(far, float(depth.max()))
+            bgr = np.ascontiguousarray(_to_uint8(rgb)[..., ::-1])
+            writer.write(bgr)
+            if png_folder is not None:
+                cv2.imwrite(str(png_folder / f"{k:06d}.png"), bgr)
+            tick()
+    finally:
+        writer.release()
+    return near, far
+
+
+def _ticker(total: int, progress):
+    done = [0]
+
+    def tick():
+        done[0] += 1
+        if progress is not None:
+            progress(done[0], total)
+    return tick
 
 
 def write_n3v(out_dir, scene: SyntheticScene, num_cameras: int = 12, num_frames: int = 30, fps: float = 30,
@@ -478,7 +575,7 @@ def write_n3v(out_dir, scene: SyntheticScene, num_cameras: int = 12, num_frames:
       frames/camXX/000000.png  lossless frames (when png);
       scene.json         the generator's settings.
 
-    Files of this layout left in out_dir by an earlier run (camXX.mp4, frames/camXX/*.png) are removed.
+    Files of either synthetic layout left in out_dir by an earlier run are removed (_remove_layout_files).
     progress: optional callable(done, total) called after each rendered frame. Returns the cameras.
     """
     out = Path(out_dir)
@@ -486,28 +583,10 @@ def write_n3v(out_dir, scene: SyntheticScene, num_cameras: int = 12, num_frames:
     cams = scene.cameras(num_cameras, width, height, focal=focal)
     _remove_layout_files(out)
     poses = np.zeros((num_cameras, 17))
-    total, done = num_cameras * num_frames, 0
+    tick = _ticker(num_cameras * num_frames, progress)
     for ci, cam in enumerate(cams):
-        path = out / f"{cam.name}.mp4"
-        writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*VIDEO_CODEC), float(fps), (width, height))
-        if not writer.isOpened():
-            raise RuntimeError(f"{path}: OpenCV cannot write '{VIDEO_CODEC}' video here")
-        if png:
-            (out / "frames" / cam.name).mkdir(parents=True, exist_ok=True)
-        near, far = np.inf, 0.0
-        try:
-            for k in range(num_frames):
-                rgb, depth = scene.render(cam, k / fps, return_depth=True, supersample=supersample)
-                near, far = min(near, float(depth.min())), max(far, float(depth.max()))
-                bgr = np.ascontiguousarray(_to_uint8(rgb)[..., ::-1])
-                writer.write(bgr)
-                if png:
-                    cv2.imwrite(str(out / "frames" / cam.name / f"{k:06d}.png"), bgr)
-                done += 1
-                if progress is not None:
-                    progress(done, total)
-        finally:
-            writer.release()
+        near, far = _write_camera(scene, cam, out / f"{cam.name}.mp4", out / "frames" / cam.name if png else None,
+                                  num_frames, fps, supersample, tick)
         poses[ci, :15] = llff_pose(cam).ravel()
         poses[ci, 15:] = near, far
     np.save(out / "poses_bounds.npy", poses)
@@ -518,13 +597,49 @@ def write_n3v(out_dir, scene: SyntheticScene, num_cameras: int = 12, num_frames:
     return cams
 
 
+def write_immersive(out_dir, scene: SyntheticScene, num_cameras: int = 12, num_frames: int = 30, fps: float = 30,
+                    width: int = 160, height: int = 120, hfov_deg: float = 120.0, model: str = "fisheye",
+                    distortion=(0.0, 0.0, 0.0, 0.0), png: bool = True, supersample: int = 1,
+                    progress=None) -> list[Camera]:
+    """Render `scene` with its outward-facing dome rig (SyntheticScene.dome_cameras: `model` "fisheye"
+    with `distortion`, equidistant by default, or "pinhole", of horizontal field of view hfov_deg) and
+    write the Google Immersive layout into out_dir (stg_train.data.immersive):
+
+      camera_0001.mp4, ...          one video per camera ('mp4v', lossy), frame k shows time k / fps;
+      camera_0001/000000.png, ...   lossless frames (when png);
+      models.json                   the cameras (a pinhole as projection_type "perspective");
+      scene.json                    the generator's settings, with each camera's near and far depth.
+
+    camera_0001, the centre camera, is the one the reader holds out. Files of either synthetic layout
+    left in out_dir by an earlier run are removed. progress: optional callable(done, total) called after
+    each rendered frame. Returns the cameras.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    cams = scene.dome_cameras(num_cameras, width, height, hfov_deg, model, distortion)
+    _remove_layout_files(out)
+    tick = _ticker(num_cameras * num_frames, progress)
+    bounds = [_write_camera(scene, cam, out / f"{cam.name}.mp4", out / cam.name if png else None, num_frames, fps,
+                            supersample, tick) for cam in cams]
+    write_atomic(out / MODELS_FILE, json.dumps([entry_from_camera(c) for c in cams], indent=1) + "\n")
+    meta = dict(scene.settings(), fps=float(fps), num_frames=int(num_frames), num_cameras=int(num_cameras),
+                width=int(width), height=int(height), model=model, hfov_deg=float(hfov_deg),
+                distortion=list(cams[0].distortion), supersample=int(supersample), video_codec=VIDEO_CODEC,
+                png=bool(png), held_out=cams[0].name, depth_bounds=[list(b) for b in bounds])
+    write_atomic(out / "scene.json", json.dumps(meta, indent=2) + "\n")
+    return cams
+
+
 def novel_view_dataset(scene: SyntheticScene, num_frames: int, fps: float, width: int = 160, height: int = 120,
-                       positions=NOVEL_VIEWS, focal: float | None = None, supersample: int = 1) -> Dataset:
+                       positions=NOVEL_VIEWS, focal: float | None = None, supersample: int = 1,
+                       cameras=None) -> Dataset:
     """Ground truth at novel views: a Dataset (in memory, uint8 frames rounded as the PNG frames are)
     of `scene` rendered at frames k / fps, k < num_frames, by rig cameras at `positions` (rig_camera;
-    named "novel0", ...), every one of them a test camera. Evaluate a model trained on the scene's rig
+    named "novel0", ...), or by `cameras` when given (e.g. SyntheticScene.dome_camera views between the
+    dome rig's cameras), every one of them a test camera. Evaluate a model trained on the scene's rig
     with it (stg_train.metrics.evaluate_images, evaluate_player)."""
-    cams = [scene.rig_camera(x, y, width, height, focal, name=f"novel{k}") for k, (x, y) in enumerate(positions)]
+    cams = list(cameras) if cameras is not None else [
+        scene.rig_camera(x, y, width, height, focal, name=f"novel{k}") for k, (x, y) in enumerate(positions)]
     frames = np.stack([np.stack([_to_uint8(scene.render(cam, k / fps, supersample=supersample))
                                  for k in range(num_frames)]) for cam in cams])
     return Dataset(cams, frames, fps, test_cameras=range(len(cams)))

@@ -36,12 +36,12 @@ def add_dataset_options(p: argparse.ArgumentParser, depth_bounds: bool = False) 
                    help="frame rate of the data (default: the videos', else 30 for layouts that store none)")
     p.add_argument("--test-camera", default=None, metavar="NAME",
                    help="camera held out for evaluation (default: cam00 for n3v and reference, cam10 for "
-                        "technicolor, the first camera by name for rig)")
+                        "technicolor, the centre camera (camera_0001) for immersive, the first camera by name for rig)")
     p.add_argument("--downscale", type=positive_int, default=1, metavar="K",
                    help="divide the frames' width and height by K (default 1; stg-eval takes the K used in training)")
     p.add_argument("--from-video", action="store_true",
                    help="decode the videos even where lossless PNG frames exist (n3v: camXX.mp4 over "
-                        "frames/camXX/*.png; rig: videos/ over images/)")
+                        "frames/camXX/*.png; immersive: camera_NNNN.mp4 over camera_NNNN/; rig: videos/ over images/)")
     if depth_bounds:
         p.add_argument("--near", type=positive_float, default=None, metavar="DEPTH",
                        help="nearest depth of the scene from every camera, in world units (with --far): the "

@@ -1,4 +1,5 @@
-"""`stg-synth`: write a synthetic dynamic scene in the Neural 3D Video layout (see stg_train.synthetic)."""
+"""`stg-synth`: write a synthetic dynamic scene in the Neural 3D Video layout, or through a dome of fisheye
+(or pinhole) cameras in the Google Immersive layout (see stg_train.synthetic)."""
 from __future__ import annotations
 
 import argparse
@@ -7,7 +8,7 @@ import time
 
 from stg_runtime.progress import Progress
 
-from ..synthetic import SyntheticScene, write_n3v
+from ..synthetic import SyntheticScene, write_immersive, write_n3v
 from .common import error, positive_float, positive_int
 
 
@@ -21,6 +22,18 @@ def _size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def _fov(limit: float):
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a field of view in degrees, got {text!r}") from None
+        if not 0 < value < limit:
+            raise argparse.ArgumentTypeError(f"the field of view must be above 0 and below {limit:g} degrees, got {text}")
+        return value
+    return parse
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="stg-synth",
@@ -28,7 +41,11 @@ def build_parser() -> argparse.ArgumentParser:
                     "an object that fades in and out and a specular highlight) seen by a forward-facing "
                     "camera rig, and write it in the Neural 3D Video layout: camXX.mp4 per camera, "
                     "poses_bounds.npy (LLFF convention), lossless frames/camXX/NNNNNN.png and scene.json. "
-                    "cam00 is the centre camera, held out for testing.")
+                    "cam00 is the centre camera, held out for testing. With --fisheye HFOV (or --pinhole-dome "
+                    "HFOV) the scene is seen by an outward-facing dome of equidistant fisheye (or pinhole) "
+                    "cameras instead and written in the Google Immersive layout: camera_NNNN.mp4 per camera, "
+                    "models.json, lossless camera_NNNN/NNNNNN.png and scene.json; camera_0001, the centre "
+                    "camera, is held out.")
     p.add_argument("out_dir", help="output folder (created if missing; existing files are overwritten)")
     p.add_argument("--cameras", type=positive_int, default=12, metavar="N",
                    help="number of cameras in the rig (default 12)")
@@ -40,6 +57,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="image width x height in pixels (default 160x120)")
     p.add_argument("--focal", type=positive_float, default=None, metavar="PIXELS",
                    help="focal length in pixels (default 0.9 x width)")
+    dome = p.add_mutually_exclusive_group()
+    dome.add_argument("--fisheye", type=_fov(360.0), default=None, metavar="HFOV",
+                      help="an outward-facing dome of equidistant fisheye cameras (OpenCV fisheye model, k1..k4 "
+                           "= 0) of horizontal field of view HFOV degrees (below 360), in the Immersive layout")
+    dome.add_argument("--pinhole-dome", type=_fov(180.0), default=None, metavar="HFOV",
+                      help="the same dome with pinhole cameras of horizontal field of view HFOV degrees (below "
+                           "180), in the Immersive layout: the pinhole rig of similar coverage to compare with")
     p.add_argument("--seed", type=int, default=0, help="seed of the procedural textures and colours (default 0)")
     p.add_argument("--supersample", type=positive_int, default=1, metavar="S",
                    help="S x S rays per pixel, averaged, against aliasing (default 1; time grows as S^2)")
@@ -54,15 +78,24 @@ def main(argv=None) -> int:
     width, height = args.size
     scene = SyntheticScene(seed=args.seed, duration=args.frames / args.fps)
     start = time.monotonic()
+    hfov = args.fisheye if args.fisheye is not None else args.pinhole_dome
+    if hfov is not None and args.focal is not None:
+        build_parser().error("--focal applies to the N3V rig; the dome's focal length follows from HFOV")
+    common = dict(num_cameras=args.cameras, num_frames=args.frames, fps=args.fps, width=width, height=height,
+                  png=not args.no_png, supersample=args.supersample)
     try:
         with Progress(total=args.cameras * args.frames, desc="stg-synth frames", enabled=not args.quiet) as bar:
-            write_n3v(args.out_dir, scene, num_cameras=args.cameras, num_frames=args.frames, fps=args.fps,
-                      width=width, height=height, png=not args.no_png, focal=args.focal,
-                      supersample=args.supersample, progress=lambda done, total: bar.update(done - bar.count))
+            report = lambda done, total: bar.update(done - bar.count)  # noqa: E731
+            if hfov is None:
+                write_n3v(args.out_dir, scene, focal=args.focal, progress=report, **common)
+            else:
+                write_immersive(args.out_dir, scene, hfov_deg=hfov, progress=report,
+                                model="fisheye" if args.fisheye is not None else "pinhole", **common)
     except OSError as e:
         return error("stg-synth", f"{e.filename or args.out_dir}: {e.strerror or e}")
     if not args.quiet:
-        print(f"wrote {args.cameras} cameras x {args.frames} frames at {width}x{height} to {args.out_dir} "
+        layout = "N3V" if hfov is None else "Immersive"
+        print(f"wrote {args.cameras} cameras x {args.frames} frames at {width}x{height} ({layout} layout) to {args.out_dir} "
               f"in {time.monotonic() - start:.1f} s", file=sys.stderr)
     return 0
 

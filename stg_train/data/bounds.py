@@ -20,6 +20,8 @@ import numpy as np
 
 from stg_runtime.camera import Camera
 
+from .visibility import sees
+
 #: Dataset.bounds_source values, and how stg-train describes them.
 SOURCES = {"layout": "the layout's near/far bounds", "colmap": "the COLMAP model's points",
            "user": "--near/--far", "sfm": "the SfM points"}
@@ -31,11 +33,10 @@ MIN_VISIBLE = 20
 
 
 def visible_depths(camera: Camera, xyz: np.ndarray) -> np.ndarray:
-    """Camera-space depths (world units) of the points xyz (N, 3) in front of `camera` that project
-    inside its image."""
-    uv, z = camera.project(np.asarray(xyz, np.float64))
-    inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
-    return z[inside]
+    """Camera-space depths z > 0 (world units) of the points xyz (N, 3) that `camera` sees inside its
+    image (stg_train.data.visibility.sees; a fisheye's points behind its camera plane have no depth bound)."""
+    _, z, seen = sees(camera, xyz)
+    return z[seen & (z > 0)]
 
 
 def bounds_from_points(cameras: Sequence[Camera], xyz: np.ndarray, low: float = LOW_PERCENTILE,

@@ -2,8 +2,10 @@
 
 COLMAP's conventions are the project's: world-to-camera poses ("cam_from_world") in OpenCV axes, and the
 centre of pixel (column u, row v) at (u + 0.5, v + 0.5), so intrinsics and poses are copied unchanged.
-Only undistorted pinhole models are accepted: PINHOLE, SIMPLE_PINHOLE, and SIMPLE_RADIAL, RADIAL or
-OPENCV when all their distortion parameters are zero.
+Accepted camera models: the undistorted pinholes PINHOLE and SIMPLE_PINHOLE (and SIMPLE_RADIAL, RADIAL
+or OPENCV when all their distortion parameters are zero), and OPENCV_FISHEYE (fx, fy, cx, cy, k1..k4:
+OpenCV's fisheye model, the project's "fisheye" Camera, formats/stg-v1.md section 1). Every other model
+is refused. Cameras written to COLMAP go as PINHOLE or OPENCV_FISHEYE.
 
 A model folder (e.g. `sparse/0`) holds cameras, images and points3D as .bin or .txt files, plus rigs
 and frames when written by COLMAP 4; older models without rigs and frames are read as well.
@@ -22,6 +24,8 @@ from .dataset import DataError
 #: COLMAP camera models accepted (the distortion ones only with zero distortion).
 PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
 ZERO_DISTORTION_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV")
+#: COLMAP's fisheye model that is the project's "fisheye" Camera.
+FISHEYE_MODEL = "OPENCV_FISHEYE"
 MODEL_FILES = ("cameras", "images", "points3D")
 
 
@@ -40,7 +44,8 @@ def image_stem(image_name: str) -> str:
 
 
 def reconstruction_from_cameras(cameras: list[Camera], image_names: list[str] | None = None):
-    """A pycolmap.Reconstruction with one PINHOLE camera and one registered image per Camera.
+    """A pycolmap.Reconstruction with one camera (PINHOLE, or OPENCV_FISHEYE for a fisheye Camera) and
+    one registered image per Camera.
 
     camera_id = image_id = index + 1; each camera gets a trivial rig and each image a trivial frame
     (pycolmap 4 registers images through frames); image names default to f"{camera.name}.png"; poses
@@ -53,22 +58,29 @@ def reconstruction_from_cameras(cameras: list[Camera], image_names: list[str] | 
         raise ValueError(f"{len(image_names)} image names for {len(cameras)} cameras")
     rec = pycolmap.Reconstruction()
     for i, (cam, name) in enumerate(zip(cameras, image_names)):
-        ccam = pycolmap.Camera.create_from_model_name(i + 1, "PINHOLE", cam.fx, cam.width, cam.height)
-        ccam.params = [cam.fx, cam.fy, cam.cx, cam.cy]
+        fisheye = cam.model == "fisheye"
+        ccam = pycolmap.Camera.create_from_model_name(i + 1, FISHEYE_MODEL if fisheye else "PINHOLE", cam.fx,
+                                                      cam.width, cam.height)
+        ccam.params = [cam.fx, cam.fy, cam.cx, cam.cy] + (list(cam.distortion) if fisheye else [])
         rec.add_camera_with_trivial_rig(ccam)
         image = pycolmap.Image(name=name, camera_id=i + 1, image_id=i + 1)
         rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(np.asarray(cam.world_to_camera[:3], dtype=np.float64)))
     return rec
 
 
-def _intrinsics(ccam, where: str) -> tuple[float, float, float, float]:
-    """(fx, fy, cx, cy) of an undistorted pinhole-like COLMAP camera, else DataError."""
+def _intrinsics(ccam, where: str) -> tuple[float, float, float, float, str, tuple]:
+    """(fx, fy, cx, cy, model, distortion) of the Camera of a COLMAP camera (see the module docstring),
+    else DataError."""
     model = ccam.model_name
     params = np.asarray(ccam.params, dtype=np.float64)
+    if model == FISHEYE_MODEL:
+        fx, fy, cx, cy = params[:4]
+        return fx, fy, cx, cy, "fisheye", tuple(params[4:8])
     if model not in PINHOLE_MODELS + ZERO_DISTORTION_MODELS:
-        raise DataError(f"{where}: camera {ccam.camera_id} uses the {model} model; only undistorted pinhole "
-                        f"cameras are supported ({', '.join(PINHOLE_MODELS)}): undistort the images first "
-                        "(e.g. colmap image_undistorter or pycolmap.undistort_images)")
+        raise DataError(f"{where}: camera {ccam.camera_id} uses the {model} model, which this project cannot "
+                        f"represent; supported: {', '.join(PINHOLE_MODELS)} (undistorted pinholes) and "
+                        f"{FISHEYE_MODEL}: undistort the images first (e.g. colmap image_undistorter or "
+                        "pycolmap.undistort_images)")
     extra = params[list(ccam.extra_params_idxs())] if model in ZERO_DISTORTION_MODELS else np.zeros(0)
     if np.any(extra != 0):
         raise DataError(f"{where}: camera {ccam.camera_id} ({model}) has lens distortion "
@@ -76,17 +88,18 @@ def _intrinsics(ccam, where: str) -> tuple[float, float, float, float]:
                         "(e.g. colmap image_undistorter or pycolmap.undistort_images)")
     if model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
         f, cx, cy = params[:3]
-        return f, f, cx, cy
+        return f, f, cx, cy, "pinhole", ()
     fx, fy, cx, cy = params[:4]
-    return fx, fy, cx, cy
+    return fx, fy, cx, cy, "pinhole", ()
 
 
 def cameras_from_reconstruction(rec, source: str, name_of: Callable[[str], str] = image_stem) -> list[Camera]:
     """One Camera per image of a COLMAP model, ordered by image name.
 
     source: the model's path, named in errors. name_of: image name -> Camera.name (default: the image
-    name without its extension). Raises DataError for an image without a pose, a distorted or
-    non-pinhole camera model, or invalid intrinsics.
+    name without its extension). Raises DataError for an image without a pose, a camera model this
+    project cannot represent (a distorted pinhole, a fisheye model other than OPENCV_FISHEYE), or invalid
+    intrinsics.
     """
     images = sorted(rec.images.values(), key=lambda im: im.name)
     if not images:
@@ -96,11 +109,11 @@ def cameras_from_reconstruction(rec, source: str, name_of: Callable[[str], str] 
         if not im.has_pose:
             raise DataError(f"{source}: image {im.name} is not registered (it has no pose)")
         ccam = rec.cameras[im.camera_id]
-        fx, fy, cx, cy = _intrinsics(ccam, source)
+        fx, fy, cx, cy, model, distortion = _intrinsics(ccam, source)
         w2c = np.eye(4)
         w2c[:3] = im.cam_from_world().matrix()
         try:
-            cams.append(Camera(fx, fy, cx, cy, ccam.width, ccam.height, w2c, name_of(im.name)))
+            cams.append(Camera(fx, fy, cx, cy, ccam.width, ccam.height, w2c, name_of(im.name), model, distortion))
         except ValueError as e:
             raise DataError(f"{source}: image {im.name}: {e}") from None
     return cams

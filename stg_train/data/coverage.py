@@ -1,7 +1,8 @@
 """Which pixels of each camera a set of 3D points covers: the holes that the combined initialisation
 (stg_train.data.points, --init combined) fills with view-volume samples.
 
-A pixel is covered when a point in front of the camera projects into a pixel at most `radius` pixels
+A pixel is covered when a point the camera sees (stg_train.data.visibility: in front of a pinhole,
+within a fisheye's field of view) projects into a pixel at most `radius` pixels
 from it (a disc of pixels around every projection's pixel). Occlusion is ignored: a point behind a surface still covers the
 pixels it projects to, so the holes are, if anything, underestimated.
 """
@@ -12,6 +13,8 @@ from typing import Sequence
 import numpy as np
 
 from stg_runtime.camera import Camera
+
+from .visibility import pixel_hits
 
 #: Coverage radius as a fraction of the image width (3 px at 160 px wide, 27 px at 1352).
 RADIUS_FRACTION = 0.02
@@ -28,9 +31,7 @@ def covered_pixels(camera: Camera, xyz: np.ndarray, radius: int) -> np.ndarray:
 
     hit = np.zeros((camera.height, camera.width), np.uint8)
     if len(xyz):
-        uv, z = camera.project(np.asarray(xyz, np.float64))
-        u, v = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
-        ok = (z > 0) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+        u, v, ok = pixel_hits(camera, xyz)
         hit[v[ok], u[ok]] = 1
     if radius > 0:
         dy, dx = np.mgrid[-radius:radius + 1, -radius:radius + 1]

@@ -13,7 +13,7 @@ frames, and runs of different segments (on several GPUs or machines) never write
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Iterable, Sequence
 
@@ -374,8 +374,8 @@ def build_dataset(root: Path, layout: str, cameras: Sequence[Camera] | Callable[
     out_w, out_h = width // downscale, height // downscale
     if out_w < 1 or out_h < 1:
         raise ValueError(f"downscale {downscale} leaves no pixels of {width}x{height} frames")
-    scaled = [Camera(c.fx / downscale, c.fy / downscale, c.cx / downscale, c.cy / downscale, out_w, out_h,
-                     c.world_to_camera, c.name) for c in cameras]
+    scaled = [replace(c, fx=c.fx / downscale, fy=c.fy / downscale, cx=c.cx / downscale, cy=c.cy / downscale,
+                      width=out_w, height=out_h) for c in cameras]  # the camera model and distortion are kept
     if fps is None:
         fps = next((f for _, _, _, f in probes if f), None)
     fps = default_fps if fps is None else float(fps)

@@ -2,6 +2,8 @@
 
     n3v          camXX.mp4 + poses_bounds.npy (Neural 3D Video; stg_train.data.n3v)
     technicolor  <Scene>_undist_<frame>_<cam>.png + cameras_parameters.txt (stg_train.data.technicolor)
+    immersive    camera_NNNN.mp4 (or camera_NNNN/ frame folders) + models.json (Google Immersive, fisheye
+                 cameras; stg_train.data.immersive)
     reference    colmap_<i>/images/camXX.png + colmap_<i>/sparse/0 (the reference code's preprocessed
                  layout; stg_train.data.reference)
     rig          images/<camera>/<frame>.png or videos/<camera>.mp4 + one COLMAP model sparse/0
@@ -21,15 +23,18 @@ from stg_runtime.progress import progress_callback
 
 from .bounds import uniform_bounds
 from .dataset import DataError, Dataset
+from .immersive import MODELS_FILE, load_immersive
 from .n3v import load_n3v
 from .reference import load_reference
 from .rig import load_rig
 from .technicolor import load_technicolor
 
 #: Layout name -> its reader, in detection order (raw data before the reference's preprocessing).
-READERS = {"n3v": load_n3v, "technicolor": load_technicolor, "reference": load_reference, "rig": load_rig}
+READERS = {"n3v": load_n3v, "technicolor": load_technicolor, "immersive": load_immersive, "reference": load_reference,
+           "rig": load_rig}
 LAYOUTS = tuple(READERS)
 _CAM_VIDEO = re.compile(r"^cam\d+\.mp4$")
+_CAMERA_VIDEO = re.compile(r"^camera_\d+\.mp4$")
 _UNDIST = re.compile(r"^.+_undist_\d+_\d+\.png$")
 
 
@@ -39,14 +44,15 @@ def _looks_like(root: Path) -> dict[str, bool]:
     return {
         "n3v": (root / "poses_bounds.npy").is_file() or any(_CAM_VIDEO.match(n) for n in names),
         "technicolor": (root / "cameras_parameters.txt").is_file() or any(_UNDIST.match(n) for n in names),
+        "immersive": (root / MODELS_FILE).is_file() or any(_CAMERA_VIDEO.match(n) for n in names),
         "reference": (root / "colmap_0").is_dir(),
         "rig": sparse.is_dir() and ((root / "images").is_dir() or (root / "videos").is_dir()),
     }
 
 
 def detect_layout(path) -> str:
-    """The layout of dataset folder `path`: "n3v", "technicolor", "reference" or "rig" (first match in
-    that order). Raises DataError listing what was looked for when nothing matches."""
+    """The layout of dataset folder `path`: "n3v", "technicolor", "immersive", "reference" or "rig" (first
+    match in that order). Raises DataError listing what was looked for when nothing matches."""
     root = Path(path)
     if not root.is_dir():
         raise DataError(f"{root}: no such directory")
@@ -58,6 +64,7 @@ def detect_layout(path) -> str:
         f"{root}: not a dataset folder in any known layout; looked for\n"
         "  n3v:         camXX.mp4 videos and poses_bounds.npy\n"
         "  technicolor: <Scene>_undist_<frame>_<cam>.png images and cameras_parameters.txt\n"
+        "  immersive:   camera_NNNN.mp4 videos (or camera_NNNN/ frame folders) and models.json\n"
         "  reference:   colmap_0/, colmap_1/, ... each with images/camXX.png and sparse/0/\n"
         "  rig:         images/<camera>/<frame>.png (or videos/<camera>.mp4) and a COLMAP model in sparse/0/")
 
@@ -71,8 +78,9 @@ def load_dataset(path, layout: str = "auto", downscale: int = 1, *, cache_dir=No
     downscale: integer factor dividing the frames' size and the intrinsics. cache_dir: where decoded
     frames go (default <path>/.stg_cache). num_frames: only the first num_frames frames. fps: frame rate
     (default: the videos' where there are videos, else 30). from_video: read videos even when lossless
-    frames exist (n3v, rig). test_camera: name of the held-out camera (default: cam00 for n3v and
-    reference, cam10 for technicolor (else the first), the first camera in sorted order for rig).
+    frames exist (n3v, immersive, rig). test_camera: name of the held-out camera (default: cam00 for n3v
+    and reference, cam10 for technicolor (else the first), the centre camera for immersive (camera_0001,
+    else the most central optical axis), the first camera in sorted order for rig).
     depth_range: (near, far) depth bounds in world units for every camera, replacing the layout's
     (Dataset.bounds_source "user"; ValueError unless 0 < near < far).
     progress: callable(done, total) while frames are decoded; show_progress: without `progress`, a
@@ -93,7 +101,7 @@ def load_dataset(path, layout: str = "auto", downscale: int = 1, *, cache_dir=No
                    lazy=lazy)
     if layout == "n3v":
         options["prefer_png"] = not from_video
-    elif layout == "rig":
+    elif layout in ("rig", "immersive"):
         options["from_video"] = from_video
     if lazy:
         dataset = READERS[layout](root, **options).chunked(show_progress=show_progress)

@@ -39,7 +39,8 @@ def frame_folders(root: Path) -> list[Path]:
 
 def _same_camera(a, b) -> bool:
     scale = 1.0 + np.abs(a.world_to_camera[:3, 3]).max()
-    return ((a.width, a.height) == (b.width, b.height)
+    return ((a.width, a.height, a.model) == (b.width, b.height, b.model)
+            and np.allclose(a.distortion, b.distortion, rtol=1e-5, atol=1e-8)
             and np.allclose([a.fx, a.fy, a.cx, a.cy], [b.fx, b.fy, b.cx, b.cy], rtol=1e-5, atol=1e-6)
             and np.allclose(a.R, b.R, atol=1e-5) and np.allclose(a.t, b.t, atol=1e-5 * scale))
 

@@ -6,8 +6,8 @@
 
 The model holds one registered image per camera; the image's name says which camera it is:
 "<camera>.png" (any extension) or "<camera>/<anything>" (e.g. "cam01/0000.png", the name COLMAP gives
-the first frame when it is run on images/). Cameras must be undistorted pinholes (see colmap.py) with
-the frames' size. Camera names are the folder (or video) names; cameras are ordered by name. The first
+the first frame when it is run on images/). Cameras must be undistorted pinholes or OPENCV_FISHEYE
+fisheyes (see colmap.py) with the frames' size. Camera names are the folder (or video) names; cameras are ordered by name. The first
 camera in that order is held out unless test_camera names another. fps: the videos', else 30. Near and
 far depth bounds come from the model's 3D points when it has them (stg_train.data.bounds).
 """

@@ -3,7 +3,8 @@
 For every `every`-th frame j, the training cameras' images of frame j go through pycolmap's SIFT
 extraction (CPU) and exhaustive matching, and the matches are triangulated with the cameras' poses and
 intrinsics held fixed (pycolmap.triangulate_points), as the reference preprocessing does with COLMAP per
-frame. The frames' points are merged with temporal centre j / num_frames and subsampled as the
+frame. Fisheye cameras go to COLMAP as OPENCV_FISHEYE (stg_train.data.colmap), and their matches are
+verified against the known poses (pycolmap.guided_geometric_verification) rather than by RANSAC. The frames' points are merged with temporal centre j / num_frames and subsampled as the
 reference does: the first frame keeps all its points, every other frame keeps KEEP_FRACTION of its
 points chosen by farthest-point sampling (each kept point is the one farthest from the points kept
 before it), so repeated static structure is thinned while the coverage of each frame is kept.
@@ -35,7 +36,7 @@ MIN_SFM_POINTS = 100
 #: Fraction of the points of every frame but the first that is kept (the reference's 1 in 4).
 KEEP_FRACTION = 0.25
 #: Bumped when the pipeline changes, so older caches are not reused.
-CACHE_VERSION = 1
+CACHE_VERSION = 2
 
 
 def _pycolmap():
@@ -96,6 +97,10 @@ def frame_points(dataset, frame: int, work_dir, cameras: Sequence[int] | None = 
         database = work / "database.db"
         _database_from_model(pycolmap, rec, work / "features.db", database)
         pycolmap.match_exhaustive(database, matching_options=matching, device=pycolmap.Device.cpu)
+        if any(cam.model != "pinhole" for cam in by_name.values()):
+            # RANSAC's verification keeps matches through an essential matrix, else a fundamental matrix or
+            # homography in pixel coordinates, which no fisheye pair satisfies: verify with the known poses.
+            pycolmap.guided_geometric_verification(rec, database, num_threads=threads)
         (work / "sparse").mkdir(exist_ok=True)
         rec = pycolmap.triangulate_points(rec, database, images, work / "sparse")
     return reconstruction_points(rec)

@@ -9,6 +9,8 @@ import numpy as np
 
 from stg_runtime.camera import Camera
 
+from .visibility import pixel_hits, samplable_pixels
+
 
 def _unproject(camera: Camera, u: np.ndarray, v: np.ndarray, depth: np.ndarray) -> np.ndarray:
     """World points (..., 3) at camera-space depth `depth` through pixel centres (u + 0.5, v + 0.5)."""
@@ -16,11 +18,9 @@ def _unproject(camera: Camera, u: np.ndarray, v: np.ndarray, depth: np.ndarray) 
 
 
 def _project(camera: Camera, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Pixel columns, rows (integer, nearest) and a bool mask of points in front and inside the image."""
-    uv, z = camera.project(xyz)
-    u, v = np.floor(uv[..., 0]).astype(np.int64), np.floor(uv[..., 1]).astype(np.int64)
-    ok = (z > 0) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
-    return np.clip(u, 0, camera.width - 1), np.clip(v, 0, camera.height - 1), ok
+    """Pixel columns, rows (integer, the pixel hit) and a bool mask of the points the camera sees inside
+    its image (stg_train.data.visibility.pixel_hits)."""
+    return pixel_hits(camera, xyz)
 
 
 def _box3(image: np.ndarray) -> np.ndarray:
@@ -42,7 +42,9 @@ def sample_view_volume(dataset, num_points: int, rng: np.random.Generator, min_v
     (uniform in 1/depth, jittered): the one whose projections into the other training cameras' frame j
     have the colours closest to the source pixel's (a per-pixel plane sweep; 3x3-blurred frames).
     mask: (T, H, W) bool over the T training cameras (dataset.train_cameras order): only its pixels
-    are drawn (a camera in proportion to its count of them); None: every pixel.
+    are drawn (a camera in proportion to its count of them); None: every pixel. A fisheye camera's
+    pixels whose rays lie more than visibility.MAX_SAMPLE_ANGLE_DEG off its axis are never drawn (they
+    have no point at a positive depth, or one far beside the rig).
     Returns xyz (N, 3) float64, rgb (N, 3) float32 in [0, 1], t_center (N,) float32.
     """
     cams = [dataset.cameras[i] for i in dataset.train_cameras]
@@ -55,6 +57,10 @@ def sample_view_volume(dataset, num_points: int, rng: np.random.Generator, min_v
         if mask.shape != (len(cams), dataset.height, dataset.width):
             raise ValueError(f"sample_view_volume: mask of shape {mask.shape}, expected "
                              f"{(len(cams), dataset.height, dataset.width)}")
+    if any(cam.model != "pinhole" for cam in cams):
+        samplable = np.stack([samplable_pixels(cam) for cam in cams])
+        mask = samplable if mask is None else mask & samplable
+    if mask is not None:
         pixels = [np.flatnonzero(m) for m in mask]
         counts = np.array([len(p) for p in pixels], np.float64)
         if counts.sum() == 0:
