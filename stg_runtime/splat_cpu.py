@@ -399,17 +399,38 @@ def _composite(packed, feat, channels, tile_start, tile_ids, tile_order, tile_si
                     # which LLVM sees cannot overlap (no runtime aliasing checks), and l >= 0 needs no
                     # wraparound check, so the loop vectorises.
                     V = S[start:]
-                    for l in range(end - start):
-                        w, t, stop = _blend(V[l + 3 * _PLANE], V[l + 4 * _PLANE], V[l], mx, my, ha, cb, hc, o,
-                                            left, right, bottom)
-                        V[l] = t
-                        V[l + _PLANE] += w * z
-                        V[l + 2 * _PLANE] = w  # for the further channels
-                        V[l + 5 * _PLANE] += w * f0
-                        V[l + 6 * _PLANE] += w * f1
-                        V[l + 7 * _PLANE] += w * f2
-                        any_stop |= stop
-                    for ch in range(3, c3, 3):  # further channels, three at a time
+                    if c3 == 9:  # the full model's 9 channels: all in one loop
+                        f3, f4, f5 = feat[g, 3], feat[g, 4], feat[g, 5]
+                        f6, f7, f8 = feat[g, 6], feat[g, 7], feat[g, 8]
+                        for l in range(end - start):
+                            w, t, stop = _blend(V[l + 3 * _PLANE], V[l + 4 * _PLANE], V[l], mx, my, ha, cb, hc,
+                                                o, left, right, bottom)
+                            V[l] = t
+                            V[l + _PLANE] += w * z
+                            V[l + 5 * _PLANE] += w * f0
+                            V[l + 6 * _PLANE] += w * f1
+                            V[l + 7 * _PLANE] += w * f2
+                            V[l + 8 * _PLANE] += w * f3
+                            V[l + 9 * _PLANE] += w * f4
+                            V[l + 10 * _PLANE] += w * f5
+                            V[l + 11 * _PLANE] += w * f6
+                            V[l + 12 * _PLANE] += w * f7
+                            V[l + 13 * _PLANE] += w * f8
+                            any_stop |= stop
+                        c_done = 9
+                    else:
+                        for l in range(end - start):
+                            w, t, stop = _blend(V[l + 3 * _PLANE], V[l + 4 * _PLANE], V[l], mx, my, ha, cb, hc,
+                                                o, left, right, bottom)
+                            V[l] = t
+                            V[l + _PLANE] += w * z
+                            V[l + 2 * _PLANE] = w  # for the further channels
+                            V[l + 5 * _PLANE] += w * f0
+                            V[l + 6 * _PLANE] += w * f1
+                            V[l + 7 * _PLANE] += w * f2
+                            any_stop |= stop
+                        c_done = 3
+                    for ch in range(c_done, c3, 3):  # further channels, three at a time
                         fa = feat[g, ch]
                         fb = feat[g, ch + 1]
                         fc = feat[g, ch + 2]
