@@ -3,8 +3,9 @@
     rasterize_numba(means, quats, scales, opacities, features, camera) -> RenderOutput
 
 Same rules (formats/stg-v1.md, section 3) and same outputs as the torch splatter
-(stg_train.render.torch_splat), value for value. `Project` is the EWA projection
-(stg_train.render.numba_projection); `Composite` the tiles and compositing
+(stg_train.render.torch_splat), value for value. `Project` is the pinhole EWA projection
+(stg_train.render.numba_projection); a fisheye camera is projected by the torch splatter's `project`
+instead (torch autograd: per Gaussian, cheap beside the compositing). `Composite` is the tiles and compositing
 (stg_train.render.numba_kernels): its forward pass composites tile by tile and keeps two numbers per
 pixel, its backward pass walks each tile's list back to front. Memory is proportional to Gaussians
 plus pixels, never to their product. The depth order and the tile lists come from the runtime's
@@ -23,6 +24,7 @@ from stg_runtime.splat_cpu import bin_tiles, sort_by_depth
 from . import numba_kernels as kernels
 from . import numba_projection
 from .output import RenderOutput, expected_depth
+from .torch_splat import project as project_torch
 
 
 class _Tiles:
@@ -126,14 +128,17 @@ def rasterize_numba(means: Tensor, quats: Tensor, scales: Tensor, opacities: Ten
 
     means (M, 3) world positions; quats (M, 4) wxyz (normalised here); scales (M, 3) standard deviations
     (world units); opacities (M,) or (M, 1) in [0, 1]; features (M, C); camera: a
-    stg_runtime.camera.Camera (fixed, no gradient). CPU tensors of one float dtype (float32 to train,
+    stg_runtime.camera.Camera, pinhole or fisheye (fixed, no gradient). CPU tensors of one float dtype (float32 to train,
     float64 for gradient checks). Returns a RenderOutput like the torch splatter's."""
     if means.device.type != "cpu":
         raise ValueError(f"the numba splatter runs on the CPU; got tensors on {means.device}")
     W, H = camera.width, camera.height
     opacities = opacities.reshape(-1)
     features = features.reshape(opacities.shape[0], features.shape[-1])
-    means2d, conic, z, radius, valid = Project.apply(means, quats, scales, opacities, camera)
+    if camera.model == "fisheye":  # the torch splatter's projection (autograd), then the numba compositing
+        means2d, conic, z, radius, valid = project_torch(means, quats, scales, opacities, camera)
+    else:
+        means2d, conic, z, radius, valid = Project.apply(means, quats, scales, opacities, camera)
     if means2d.requires_grad:
         means2d.retain_grad()
     feats, alpha, depth_sum, visible = Composite.apply(means2d, conic, opacities, features, z, radius, valid, W, H)
