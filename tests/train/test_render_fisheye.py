@@ -182,3 +182,22 @@ def test_gaussian_on_the_axis_has_the_limit_gradient():
                for s in (1, -1)]
     fd = (shifted[0].means2d - shifted[1].means2d)[0] / (2 * eps)
     torch.testing.assert_close(jac[:, 0], fd, rtol=1e-8, atol=1e-8)
+
+
+@pytest.mark.parametrize("backend", ["torch", "numba"])
+def test_degenerate_culled_points_have_zero_finite_gradients(backend):
+    """Culled Gaussians where the fisheye formulas have no value (on the axis behind the camera, at the
+    camera centre, in the image plane z = 0) next to a drawn one: finite images, zero gradients."""
+    cam = Camera.look_at([0, 0, 0], [0, 0, 1], [0, -1, 0], 200.0, 24, 20, model="fisheye")
+    cam = Camera(cam.fx, cam.fy, cam.cx, cam.cy, 24, 20, cam.world_to_camera, "", "fisheye", (0.02, 0.0, 0.0, 0.0))
+    p_cam = np.array([[0.0, 0.0, -2.0], [0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, -1e-9, 0.0], [0.1, 0.2, 2.0]])
+    n = len(p_cam)
+    arrays = [(p_cam - cam.t) @ cam.R, np.tile([1.0, 0.2, -0.1, 0.3], (n, 1)), np.full((n, 3), 0.2),
+              np.full(n, 0.8), np.ones((n, 3))]
+    out, grads = _outputs_and_grads(arrays, cam, backend)
+    assert out.visible.tolist() == [False] * 4 + [True]
+    assert all(torch.isfinite(x).all() for x in (*out[:3], out.means2d))
+    for g, name in zip(grads, NAMES):
+        assert torch.isfinite(g).all(), name
+        assert g[:4].abs().max() == 0, name
+    assert grads[0][4].abs().max() > 0
