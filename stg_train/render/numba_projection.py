@@ -1,4 +1,5 @@
-"""The EWA projection of the CPU training splatter, forward and backward, in numba (no torch here).
+"""The pinhole EWA projection of the CPU training splatter, forward and backward, in numba (no torch
+here). Fisheye cameras are projected by stg_train.render.torch_splat.project instead (numba_splat).
 
     forward(means, quats, scales, opacities, cam, means2d, conic, depth, radius, valid)
     backward(means, quats, scales, cam, valid, g_means2d, g_conic, g_depth, g_means, g_quats, g_scales)

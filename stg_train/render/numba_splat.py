@@ -5,8 +5,8 @@
 Same rules (formats/stg-v1.md, section 3) and same outputs as the torch splatter
 (stg_train.render.torch_splat), value for value. `Project` is the pinhole EWA projection
 (stg_train.render.numba_projection); a fisheye camera is projected by the torch splatter's `project`
-instead (torch autograd: per Gaussian, cheap beside the compositing). `Composite` is the tiles and compositing
-(stg_train.render.numba_kernels): its forward pass composites tile by tile and keeps two numbers per
+instead (autograd; slower than `Project`: docs/training.md, "Camera models"). `Composite` is the
+tiles and compositing (stg_train.render.numba_kernels): its forward pass composites tile by tile and keeps two numbers per
 pixel, its backward pass walks each tile's list back to front. Memory is proportional to Gaussians
 plus pixels, never to their product. The depth order and the tile lists come from the runtime's
 splatter (stg_runtime.splat_cpu), so the forward pass draws what the Player draws. CPU tensors only.

@@ -2,7 +2,8 @@
 
 The maths and constants are those of formats/stg-v1.md, section 3 (stg_runtime.spec), exactly as in
 the float64 oracle stg_runtime.spec.rasterize_oracle and stg_runtime.splat_cpu (numba): EWA projection
-with the near plane, Jacobian clamp, blur and determinant cull; 3-sigma radius; per-pixel footprint
+with the near plane, Jacobian clamp, blur and determinant cull (a fisheye camera: the mean through the
+distortion, the fisheye Jacobian unclamped, and the max_angle cull); 3-sigma radius; per-pixel footprint
 test; front-to-back compositing in (depth, index) order with the 1/255 alpha floor, the 0.99 alpha cap
 and the 1e-4 transmittance stop. Discrete decisions (culls, radii, order, thresholds, the stop) carry no
 gradient; everything else is differentiable w.r.t. means, quats, scales, opacities and features.
