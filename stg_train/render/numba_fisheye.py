@@ -12,6 +12,9 @@ s = theta_d / r; the 2D covariance T T^T + 0.3 I with T = J R Rq S, J the exact 
 0 (no gradient through theta there); a Gaussian that is not seen has the mean (cx, cy) and no
 gradient but its depth's. cam: stg_runtime.projection.camera_params(camera) (k1..k4 at 24..27,
 max_angle at 28). Arithmetic in float64, outputs in the output arrays' dtype.
+
+numba caches these kernels (cache=True) and checks only this file for changes: after editing the
+helpers imported from numba_projection, delete stg_train/render/__pycache__/*.nbi (or touch this file).
 """
 from __future__ import annotations
 

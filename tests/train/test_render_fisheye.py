@@ -131,12 +131,13 @@ def test_numba_splatter_matches_the_torch_splatter(seed, hfov):
     assert out.visible.sum() >= 50
 
 
-def test_numba_float32_matches_the_runtime_splatter():
+@pytest.mark.parametrize("hfov", [120, 180, 200])
+def test_numba_float32_matches_the_runtime_splatter(hfov):
     """The golden images: the trainer's float32 forward pass through a fisheye draws what the Player's
     splatter draws."""
     from stg_runtime.splat_cpu import rasterize as rasterize_runtime
 
-    for arrays, cam, _ in clean_scenes(7, 2, 150, 48, 40, 3, fisheye=180):
+    for arrays, cam, _ in clean_scenes(hfov + 7, 2, 150, 48, 40, 3, fisheye=hfov):
         want = rasterize_runtime(*arrays, cam)
         out = rasterize(*[torch.tensor(a) for a in arrays], cam, backend="numba")
         for got, ref, name in zip(out[:3], want, ("features", "alpha", "depth")):
