@@ -7,7 +7,9 @@
 Backends: "numba" (stg_train.render.numba_splat, the CPU training splatter: numba kernels with a
 backward pass), "torch" (stg_train.render.torch_splat, the readable reference, any device) and "gsplat"
 (stg_train.render.gsplat_backend, gsplat's CUDA kernels). numba and gsplat are imported only when used.
-All follow formats/stg-v1.md, section 3, and return the same RenderOutput.
+All follow formats/stg-v1.md, section 3, and return the same RenderOutput. Cameras may be pinhole or
+fisheye (stg_runtime Camera.model): torch and numba draw both; gsplat draws pinholes and equidistant fisheyes and hands a fisheye with
+k1..k4 to the torch splatter (gsplat_backend's docstring says why; docs/training.md, "Camera models").
 """
 from __future__ import annotations
 
@@ -25,7 +27,7 @@ def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, f
               *, backend: str = "torch", **options) -> RenderOutput:
     """Render M Gaussians (means (M, 3) world, quats (M, 4) wxyz, scales (M, 3) standard deviations,
     opacities (M,) or (M, 1), features (M, C); one device and float dtype) seen by `camera` (a
-    stg_runtime Camera), differentiably. options: the torch backend's speed and memory settings
+    stg_runtime Camera, pinhole or fisheye), differentiably. options: the torch backend's speed and memory settings
     (rasterize_torch's tile_size, chunk, max_elements, checkpoint); the result never depends on them.
     The numba backend takes CPU tensors only."""
     if backend == "torch":

@@ -7,6 +7,21 @@ constants of formats/stg-v1.md, section 3 (near plane 0.01, blur 0.3, 1.3x Jacob
 way; its footprint radius is opacity-aware (smaller than 3 sigma where the opacity is low), which only
 drops contributions below 1/255.
 
+Fisheye cameras (spec section 3, "fisheye Jacobian"). gsplat has two fisheye paths (read in its
+sources, versions 1.4 to 1.5.3 and its main branch):
+- its EWA projection (`camera_model="fisheye"`, `with_ut=False`) is the equidistant fisheye only,
+  theta_d = theta, with no k1..k4 (it refuses `radial_coeffs` without `with_ut`): the mean
+  (fx x theta / r + cx, fy y theta / r + cy) and the covariance through that map's exact Jacobian,
+  unclamped, culling z < near, which is our rule for k1 = k2 = k3 = k4 = 0 (it adds 1e-7 to r and to
+  x^2 against division by zero: a relative change of about 1e-7 near the axis, below float32 noise);
+- its unscented-transform path (`with_ut=True`, `radial_coeffs` (C, 4): OpenCV's fisheye with k1..k4,
+  our camera model) replaces the Jacobian by sigma points pushed through the distortion, a different
+  2D covariance than our spec's, and its projection is not differentiable (gsplat trains it with
+  `with_eval3d=True`, evaluating each Gaussian in 3D along the pixel rays: a different renderer).
+So an equidistant fisheye (all distortion coefficients zero) goes to gsplat's EWA path, and a fisheye
+with any k_i != 0 falls back to our torch splatter (same device, same RenderOutput): what is trained is
+then what the Player draws, at the torch splatter's speed.
+
 Install with the `[cuda]` extra (`pip install -e ".[cuda]"`); gsplat compiles its kernels on first use
 and needs a CUDA device.
 """
@@ -19,6 +34,7 @@ from torch import Tensor
 from stg_runtime.spec import BLUR, NEAR
 
 from .output import RenderOutput
+from .torch_splat import rasterize_torch
 
 
 def unavailable_reason(device) -> str | None:
@@ -34,9 +50,16 @@ def unavailable_reason(device) -> str | None:
     return None
 
 
+def covers(camera) -> bool:
+    """Whether gsplat's EWA projection draws `camera` by our spec: a pinhole, or an equidistant fisheye
+    (every distortion coefficient zero); see the module docstring."""
+    return camera.model == "pinhole" or (camera.model == "fisheye" and not any(camera.distortion))
+
+
 def camera_tensors(camera, device, dtype) -> tuple[Tensor, Tensor]:
     """gsplat's camera arguments for one stg_runtime Camera: viewmats (1, 4, 4) world-to-camera (OpenCV
-    axes, as ours) and Ks (1, 3, 3) pinhole intrinsics in pixels (pixel centres at +0.5, as ours)."""
+    axes, as ours) and Ks (1, 3, 3) intrinsics in pixels (pixel centres at +0.5, as ours; the same
+    matrix for gsplat's pinhole and fisheye models)."""
     viewmat = torch.tensor(np.array(camera.world_to_camera), dtype=dtype, device=device)[None]
     K = torch.tensor(np.array(camera.K), dtype=dtype, device=device)[None]
     return viewmat, K
@@ -48,8 +71,12 @@ def rasterize_gsplat(means: Tensor, quats: Tensor, scales: Tensor, opacities: Te
 
     means (M, 3), quats (M, 4) wxyz, scales (M, 3), opacities (M,) or (M, 1), features (M, C) on a CUDA
     device; camera a stg_runtime Camera. `rasterization` replaces gsplat.rasterization (tests).
-    `means2d.grad` after backward is in pixels, as the torch backend's.
+    `means2d.grad` after backward is in pixels, as the torch backend's. A camera that gsplat does not
+    cover (`covers`: a fisheye with k1..k4 not all zero) is drawn by the torch splatter instead (its
+    means2d is then (M, 2)).
     """
+    if not covers(camera):
+        return rasterize_torch(means, quats, scales, opacities, features, camera)
     if rasterization is None:
         from gsplat import rasterization
     viewmats, Ks = camera_tensors(camera, means.device, means.dtype)
@@ -57,7 +84,7 @@ def rasterize_gsplat(means: Tensor, quats: Tensor, scales: Tensor, opacities: Te
     colors, alphas, meta = rasterization(
         means, quats, scales, opacities, features.reshape(opacities.shape[0], -1), viewmats, Ks,
         camera.width, camera.height, near_plane=NEAR, eps2d=BLUR, packed=False,
-        render_mode="RGB+ED", rasterize_mode="classic")
+        render_mode="RGB+ED", rasterize_mode="classic", camera_model=camera.model)
     means2d = meta["means2d"]  # (1, M, 2) pixels, a non-leaf of the graph: keep its gradient
     if means2d.requires_grad:
         means2d.retain_grad()

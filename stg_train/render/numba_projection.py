@@ -1,4 +1,5 @@
-"""The EWA projection of the CPU training splatter, forward and backward, in numba (no torch here).
+"""The pinhole EWA projection of the CPU training splatter, forward and backward, in numba (no torch
+here), and the parts that stg_train.render.numba_fisheye shares (axes, conic_backward, axes_backward).
 
     forward(means, quats, scales, opacities, cam, means2d, conic, depth, radius, valid)
     backward(means, quats, scales, cam, valid, g_means2d, g_conic, g_depth, g_means, g_quats, g_scales)
@@ -38,7 +39,7 @@ def _rc(cam, r, row, col):
 
 
 @numba.njit(cache=True)
-def _axes(cam, quats, scales, i):
+def axes(cam, quats, scales, i):
     """(M as 9 row-major entries: the Gaussian's scaled axes in camera space, M = R Rq S; the unit
     quaternion (4); its norm before normalising)."""
     qw, qx, qy, qz = np.float64(quats[i, 0]), np.float64(quats[i, 1]), np.float64(quats[i, 2]), np.float64(quats[i, 3])
@@ -66,10 +67,10 @@ def _jacobian(cam, x, y, z):
 
 @numba.njit(cache=True)
 def _covariance(cam, quats, scales, i, x, y, z):
-    """Gaussian i seen from camera-space mean (x, y, z): (its axes M (_axes), the unit quaternion and
+    """Gaussian i seen from camera-space mean (x, y, z): (its axes M (axes), the unit quaternion and
     its norm, the Jacobian (_jacobian), T = J M as two rows of 3, and the 2D covariance a, b, c with the
     blur)."""
-    m, q, norm = _axes(cam, quats, scales, i)
+    m, q, norm = axes(cam, quats, scales, i)
     jac = _jacobian(cam, x, y, z)
     j00, j02, j11, j12 = jac[0], jac[1], jac[2], jac[3]
     t = (j00 * m[0] + j02 * m[6], j00 * m[1] + j02 * m[7], j00 * m[2] + j02 * m[8],
@@ -149,14 +150,7 @@ def _covariance_backward(cam, quats, scales, g_conic, i, x, y, z, gx, gy, gz, g_
     fx, fy = cam[12], cam[13]
     m, q, norm, jac, t, a, b, c = _covariance(cam, quats, scales, i, x, y, z)
     j00, j02, j11, j12, xz, yz, x_free, y_free = jac
-    det = a * c - b * b
-    gA, gB, gC = np.float64(g_conic[i, 0]), np.float64(g_conic[i, 1]), np.float64(g_conic[i, 2])
-    d2 = det * det
-    ga = (-gA * c * c + gB * b * c - gC * b * b) / d2
-    gb = (2.0 * gA * b * c - gB * (a * c + b * b) + 2.0 * gC * a * b) / d2
-    gc = (-gA * b * b + gB * a * b - gC * a * a) / d2
-    gt = (2.0 * ga * t[0] + gb * t[3], 2.0 * ga * t[1] + gb * t[4], 2.0 * ga * t[2] + gb * t[5],  # cov = T T^T
-          gb * t[0] + 2.0 * gc * t[3], gb * t[1] + 2.0 * gc * t[4], gb * t[2] + 2.0 * gc * t[5])
+    gt = conic_backward(g_conic, i, t, a, b, c)
     # T = J M: dL/dJ = dL/dT M^T (its non-zero entries), dL/dM = J^T dL/dT.
     g00 = gt[0] * m[0] + gt[1] * m[1] + gt[2] * m[2]
     g02 = gt[0] * m[6] + gt[1] * m[7] + gt[2] * m[8]
@@ -176,6 +170,28 @@ def _covariance_backward(cam, quats, scales, g_conic, i, x, y, z, gx, gy, gz, g_
         gz += g12 * 2.0 * fy * y / (z * z * z)
     else:
         gz += g12 * fy * yz / (z * z)
+    axes_backward(cam, scales, i, q, norm, gm, g_quats, g_scales)
+    return gx, gy, gz
+
+
+@numba.njit(cache=True)
+def conic_backward(g_conic, i, t, a, b, c):
+    """dL/dT (6 entries, row-major 2 x 3) from dL/d conic of Gaussian i, where the covariance
+    [[a, b], [b, c]] = T T^T + blur and the conic is its inverse [c, -b, a] / det."""
+    det = a * c - b * b
+    gA, gB, gC = np.float64(g_conic[i, 0]), np.float64(g_conic[i, 1]), np.float64(g_conic[i, 2])
+    d2 = det * det
+    ga = (-gA * c * c + gB * b * c - gC * b * b) / d2
+    gb = (2.0 * gA * b * c - gB * (a * c + b * b) + 2.0 * gC * a * b) / d2
+    gc = (-gA * b * b + gB * a * b - gC * a * a) / d2
+    return (2.0 * ga * t[0] + gb * t[3], 2.0 * ga * t[1] + gb * t[4], 2.0 * ga * t[2] + gb * t[5],  # cov = T T^T
+            gb * t[0] + 2.0 * gc * t[3], gb * t[1] + 2.0 * gc * t[4], gb * t[2] + 2.0 * gc * t[5])
+
+
+@numba.njit(cache=True)
+def axes_backward(cam, scales, i, q, norm, gm, g_quats, g_scales):
+    """Write dL/d quats and dL/d scales of Gaussian i from dL/dM (gm, 9 entries row-major) of its axes
+    M = R Rq S (axes; q its unit quaternion, norm the quaternion's length before normalising)."""
     # M = R Rq S: dL/d(Rq S) = R^T dL/dM, then split into Rq and S.
     qw, qx, qy, qz = q
     r = _rotation(qw, qx, qy, qz)
@@ -198,4 +214,3 @@ def _covariance_backward(cam, quats, scales, g_conic, i, x, y, z, gx, gy, gz, g_
     g_quats[i, 1] = (gqx - qx * dot) / norm
     g_quats[i, 2] = (gqy - qy * dot) / norm
     g_quats[i, 3] = (gqz - qz * dot) / norm
-    return gx, gy, gz

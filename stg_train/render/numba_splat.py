@@ -4,8 +4,8 @@
 
 Same rules (formats/stg-v1.md, section 3) and same outputs as the torch splatter
 (stg_train.render.torch_splat), value for value. `Project` is the EWA projection
-(stg_train.render.numba_projection); `Composite` the tiles and compositing
-(stg_train.render.numba_kernels): its forward pass composites tile by tile and keeps two numbers per
+(stg_train.render.numba_projection for pinholes, stg_train.render.numba_fisheye for fisheyes);
+`Composite` the tiles and compositing (stg_train.render.numba_kernels): its forward pass composites tile by tile and keeps two numbers per
 pixel, its backward pass walks each tile's list back to front. Memory is proportional to Gaussians
 plus pixels, never to their product. The depth order and the tile lists come from the runtime's
 splatter (stg_runtime.splat_cpu), so the forward pass draws what the Player draws. CPU tensors only.
@@ -21,7 +21,7 @@ from stg_runtime.projection import camera_params
 from stg_runtime.splat_cpu import bin_tiles, sort_by_depth
 
 from . import numba_kernels as kernels
-from . import numba_projection
+from . import numba_fisheye, numba_projection
 from .output import RenderOutput, expected_depth
 
 
@@ -38,7 +38,7 @@ def _numpy(t: Tensor) -> np.ndarray:
 
 
 class Project(torch.autograd.Function):
-    """EWA projection: (means (M, 3), quats (M, 4), scales (M, 3), opacities (M,), camera) -> (means2d
+    """EWA projection (pinhole or fisheye): (means (M, 3), quats (M, 4), scales (M, 3), opacities (M,), camera) -> (means2d
     (M, 2), conic (M, 3), depth (M,), radius (M,) int64, valid (M,) bool), differentiable in means, quats
     and scales (radius and valid are not; the opacities only decide validity)."""
 
@@ -50,9 +50,9 @@ class Project(torch.autograd.Function):
         depth = torch.empty(m, dtype=dtype)
         radius, valid = torch.empty(m, dtype=torch.int64), torch.empty(m, dtype=torch.bool)
         cam = camera_params(camera)
-        numba_projection.forward(*arrays, cam, means2d.numpy(), conic.numpy(), depth.numpy(), radius.numpy(),
-                                 valid.numpy())
-        ctx.arrays, ctx.cam, ctx.valid = arrays[:3], cam, valid.numpy()
+        kernels = numba_fisheye if camera.model == "fisheye" else numba_projection
+        kernels.forward(*arrays, cam, means2d.numpy(), conic.numpy(), depth.numpy(), radius.numpy(), valid.numpy())
+        ctx.arrays, ctx.cam, ctx.valid, ctx.kernels = arrays[:3], cam, valid.numpy(), kernels
         ctx.mark_non_differentiable(radius, valid)
         return means2d, conic, depth, radius, valid
 
@@ -62,7 +62,7 @@ class Project(torch.autograd.Function):
         grads = [np.zeros_like(x) for x in (means, quats, scales)]
         incoming = [np.zeros((means.shape[0],) + shape, means.dtype) if g is None else _numpy(g)
                     for g, shape in ((g_means2d, (2,)), (g_conic, (3,)), (g_depth, ()))]
-        numba_projection.backward(means, quats, scales, ctx.cam, ctx.valid, *incoming, *grads)
+        ctx.kernels.backward(means, quats, scales, ctx.cam, ctx.valid, *incoming, *grads)
         return (*[torch.from_numpy(g) for g in grads], None, None)
 
 
@@ -126,7 +126,7 @@ def rasterize_numba(means: Tensor, quats: Tensor, scales: Tensor, opacities: Ten
 
     means (M, 3) world positions; quats (M, 4) wxyz (normalised here); scales (M, 3) standard deviations
     (world units); opacities (M,) or (M, 1) in [0, 1]; features (M, C); camera: a
-    stg_runtime.camera.Camera (fixed, no gradient). CPU tensors of one float dtype (float32 to train,
+    stg_runtime.camera.Camera, pinhole or fisheye (fixed, no gradient). CPU tensors of one float dtype (float32 to train,
     float64 for gradient checks). Returns a RenderOutput like the torch splatter's."""
     if means.device.type != "cpu":
         raise ValueError(f"the numba splatter runs on the CPU; got tensors on {means.device}")

@@ -2,7 +2,8 @@
 
 The maths and constants are those of formats/stg-v1.md, section 3 (stg_runtime.spec), exactly as in
 the float64 oracle stg_runtime.spec.rasterize_oracle and stg_runtime.splat_cpu (numba): EWA projection
-with the near plane, Jacobian clamp, blur and determinant cull; 3-sigma radius; per-pixel footprint
+with the near plane, Jacobian clamp, blur and determinant cull (a fisheye camera: the mean through the
+distortion, the fisheye Jacobian unclamped, and the max_angle cull); 3-sigma radius; per-pixel footprint
 test; front-to-back compositing in (depth, index) order with the 1/255 alpha floor, the 0.99 alpha cap
 and the 1e-4 transmittance stop. Discrete decisions (culls, radii, order, thresholds, the stop) carry no
 gradient; everything else is differentiable w.r.t. means, quats, scales, opacities and features.
@@ -70,27 +71,21 @@ def quat_to_rotmat(quats: Tensor) -> Tensor:
 
 def project(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, camera) -> Projection:
     """EWA projection of M Gaussians (means (M, 3) world, quats (M, 4) wxyz, scales (M, 3) standard
-    deviations in world units, opacities (M,)) through `camera` (stg_runtime.camera.Camera)."""
+    deviations in world units, opacities (M,)) through `camera` (stg_runtime.camera.Camera, pinhole or
+    fisheye)."""
     dev, dt = means.device, means.dtype
-    W, H = camera.width, camera.height
-    fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
     Rc = torch.tensor(camera.R, dtype=dt, device=dev)
     tc = torch.tensor(camera.t, dtype=dt, device=dev)
 
     p = means @ Rc.T + tc
-    x, y, z = p.unbind(-1)
-    in_front = z > NEAR
-    zs = torch.where(in_front, z, torch.ones_like(z))  # no division by ~0 for culled rows (keeps grads finite)
-    means2d = torch.stack([fx * x / zs + cx, fy * y / zs + cy], dim=-1)
+    if camera.model == "fisheye":
+        in_front, means2d, J = _fisheye(p, camera)
+    else:
+        in_front, means2d, J = _pinhole(p, camera)
 
-    # Sigma = R S S^T R^T in camera space; J with x/z, y/z clamped to 1.3 x the half field of view.
+    # Sigma = R S S^T R^T in camera space, through J: cov2d = T T^T with T = J R_cam R S.
     RS = quat_to_rotmat(quats) * scales[:, None, :]
-    tan_x, tan_y = W / (2 * fx), H / (2 * fy)
-    xz = (x / zs).clamp(-(cx / fx + JACOBIAN_MARGIN * tan_x), (W - cx) / fx + JACOBIAN_MARGIN * tan_x)
-    yz = (y / zs).clamp(-(cy / fy + JACOBIAN_MARGIN * tan_y), (H - cy) / fy + JACOBIAN_MARGIN * tan_y)
-    zero = torch.zeros_like(zs)
-    J = torch.stack([fx / zs, zero, -fx * xz / zs, zero, fy / zs, -fy * yz / zs], -1).reshape(-1, 2, 3)
-    T = (J @ Rc) @ RS  # (M, 2, 3): cov2d = T T^T
+    T = (J @ Rc) @ RS  # (M, 2, 3)
     cov = T @ T.transpose(1, 2)
     a = cov[:, 0, 0] + BLUR
     b = cov[:, 0, 1]
@@ -103,7 +98,55 @@ def project(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, cam
         m = 0.5 * (a + c)
         lam = m + torch.sqrt(torch.clamp(m * m - det, min=0.1))
         radius = torch.where(valid, torch.ceil(3.0 * torch.sqrt(lam.clamp_min(0))), torch.zeros_like(lam))
-    return Projection(means2d, conic, z, radius.to(torch.int64), valid)
+    return Projection(means2d, conic, p[:, 2], radius.to(torch.int64), valid)
+
+
+def _pinhole(p: Tensor, camera) -> tuple[Tensor, Tensor, Tensor]:
+    """Camera-space points p (M, 3) -> (in front of the near plane (M,) bool, the 2D means (M, 2) pixels,
+    the EWA Jacobians (M, 2, 3) with x/z, y/z clamped to 1.3 x the half field of view). Culled rows:
+    z taken as 1 (finite values and gradients)."""
+    W, H = camera.width, camera.height
+    fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
+    x, y, z = p.unbind(-1)
+    in_front = z > NEAR
+    zs = torch.where(in_front, z, torch.ones_like(z))  # no division by ~0 for culled rows (keeps grads finite)
+    means2d = torch.stack([fx * x / zs + cx, fy * y / zs + cy], dim=-1)
+    tan_x, tan_y = W / (2 * fx), H / (2 * fy)
+    xz = (x / zs).clamp(-(cx / fx + JACOBIAN_MARGIN * tan_x), (W - cx) / fx + JACOBIAN_MARGIN * tan_x)
+    yz = (y / zs).clamp(-(cy / fy + JACOBIAN_MARGIN * tan_y), (H - cy) / fy + JACOBIAN_MARGIN * tan_y)
+    zero = torch.zeros_like(zs)
+    J = torch.stack([fx / zs, zero, -fx * xz / zs, zero, fy / zs, -fy * yz / zs], -1).reshape(-1, 2, 3)
+    return in_front, means2d, J
+
+
+def _fisheye(p: Tensor, camera) -> tuple[Tensor, Tensor, Tensor]:
+    """Camera-space points p (M, 3) -> (seen (M,) bool: z > NEAR and theta < camera.max_angle, the 2D
+    means (M, 2) pixels, the fisheye Jacobians (M, 2, 3) at the unclamped means; formats/stg-v1.md
+    sections 1 and 3, as stg_runtime.spec.fisheye_jacobian). theta = atan2(r, z), r = |(x, y)|; on the
+    axis (r <= 1e-7 z) the limits (theta taken as 0). Culled rows are replaced by the point (0, 0, 1):
+    their means are (cx, cy) and every value and gradient stays finite (no sqrt or atan2 at 0)."""
+    fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
+    k1, k2, k3, k4 = camera.distortion
+    with torch.no_grad():
+        x, y, z = p.unbind(-1)
+        seen = (z > NEAR) & (torch.atan2(torch.sqrt(x * x + y * y), z) < camera.max_angle)
+    p = torch.where(seen[:, None], p, torch.tensor([0.0, 0.0, 1.0], dtype=p.dtype, device=p.device))
+    x, y, z = p.unbind(-1)
+    r2 = x * x + y * y
+    off_axis = r2 > (1e-7 * z) ** 2  # r > 1e-7 z, as z > 0 here
+    r2s = torch.where(off_axis, r2, torch.ones_like(r2))
+    r = torch.sqrt(r2s)
+    theta = torch.where(off_axis, torch.atan2(r, z), torch.zeros_like(z))
+    t2 = theta * theta
+    theta_d = theta * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+    slope = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))  # d theta_d / d theta
+    rho2 = r2 + z * z
+    radial = torch.where(off_axis, theta_d / r, 1 / z)  # theta_d / r
+    ar = torch.where(off_axis, (slope * z / rho2 - theta_d / r) / r2s, (2 * k1 - 2 / 3) / z ** 3)  # radial'(r) / r
+    means2d = torch.stack([fx * x * radial + cx, fy * y * radial + cy], dim=-1)
+    J = torch.stack([fx * (radial + x * x * ar), fx * x * y * ar, -fx * x * slope / rho2,
+                     fy * x * y * ar, fy * (radial + y * y * ar), -fy * y * slope / rho2], -1).reshape(-1, 2, 3)
+    return seen, means2d, J
 
 
 def _bin(mu: Tensor, radius: Tensor, depth: Tensor, valid: Tensor, W: int, H: int, ts: int):

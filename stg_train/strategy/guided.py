@@ -105,7 +105,8 @@ def ray_samples(camera, rows: Tensor, cols: Tensor, depth: Tensor, far: float | 
     """Points (K * samples, 3) float64 along the rays of pixels (rows, cols) (K,) of `camera` at camera
     depths linspace(ratio_start d, ratio_end d) (far end clipped to `far`), 5% jitter; depth (K,) = d.
     Returns the points and their camera depths (K * samples,). Sample-major order: all pixels' first
-    samples, then the second ones."""
+    samples, then the second ones. Through a fisheye, the points of rays at or beyond 90 degrees off
+    its axis are non-finite (Camera.unproject)."""
     s = settings
     d = depth.double().cpu()
     lo, hi = s.ratio_start * d, s.ratio_end * d
@@ -197,7 +198,11 @@ class GuidedSampling(Strategy):
         xyz, _ = ray_samples(camera, rows, cols, d, far, s)
         colour = gt[rows, cols].repeat(s.samples, 1)
         t_center = torch.rand(xyz.shape[0])
-        return params.new_rows(torch.as_tensor(xyz), colour, t_center, opacity=s.opacity)
+        # A fisheye's rays at or beyond 90 degrees off its axis have no point at a positive depth.
+        keep = torch.as_tensor(np.isfinite(xyz).all(1))
+        if not bool(keep.any()):
+            return None
+        return params.new_rows(torch.as_tensor(xyz)[keep], colour[keep], t_center[keep], opacity=s.opacity)
 
     # -- checkpoints -----------------------------------------------------------------------------------
     def state_dict(self) -> dict:
