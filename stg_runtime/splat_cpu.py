@@ -20,8 +20,9 @@ regions per frame: a region costs milliseconds when the other core is busy):
    (transmittance, sum w z, sum w f per channel) lives in planes of one array, each plane laid out in
    strips 8 pixels wide, row-major within a strip. Per Gaussian and strip, the pixels from the first
    to the last of its rectangle are one run, rounded up to 16 pixels, composited by one branch-free
-   loop that LLVM vectorises (8 float32 lanes); pixels outside the rectangle, stopped pixels and
-   skipped contributions are masked. exp is a vectorisable polynomial (relative error ~1e-7; numba
+   loop that LLVM vectorises (8 float32 lanes), with the first three feature channels (all nine of
+   a full model; further channels then three at a time, from the run's weights); pixels outside the
+   rectangle, stopped pixels and skipped contributions are masked. exp is a vectorisable polynomial (relative error ~1e-7; numba
    cannot vectorise libm's expf without SVML). Rows where every pixel has stopped are left out of
    the runs, and a tile ends once all its pixels have stopped. Records are read by Gaussian id, a
    few list entries ahead of use (prefetch), which makes a depth-ordered copy of them unnecessary.
