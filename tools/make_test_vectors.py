@@ -25,6 +25,13 @@ def _camera() -> Camera:
     return Camera.look_at([0.2, -0.1, 0.0], [0, 0, 4], [0, -1, 0], 55.0, 48, 32, name="cam00")
 
 
+def _fisheye_camera() -> Camera:
+    """A distorted fisheye about 190 degrees across, inside the scene (Gaussians up to 90 degrees off its
+    axis and beyond)."""
+    pose = Camera.look_at([0.1, 0.1, 2.2], [0, 0, 4], [0, -1, 0], 55.0, 48, 32).world_to_camera
+    return Camera(14.5, 15.0, 24.3, 15.8, 48, 32, pose, "fish00", "fisheye", (0.03, -0.01, 0.002, -0.0004))
+
+
 def _segment(rng, start, frames, kind, weights=None) -> Segment:
     n = 40
     position = np.zeros((n, 4, 3))
@@ -78,14 +85,18 @@ def main() -> None:
                  "t_center": "u16", "t_scale": "f16"}
     sh = Model("sh", FPS, [_segment(np.random.default_rng(2026), 0, 10, "sh")], cameras=[cam],
                bounds=((-2, -2, 2), (2, 2, 6)), provenance={"tool": "tools/make_test_vectors.py"})
-    vectors = [("lite", lite, {}), ("full", full, {}), ("full_quantized", full, quantized), ("sh", sh, {})]
+    fisheye = Model("full", FPS, full.segments, cameras=[_fisheye_camera()], bounds=full.bounds,
+                    provenance=full.provenance)
+    vectors = [("lite", lite, {}), ("full", full, {}), ("full_quantized", full, quantized), ("sh", sh, {}),
+               ("full_fisheye", fisheye, {})]
     times = [0.0, 0.25, 0.62, 0.95]
     index = {}
     for name, model, encodings in vectors:
         path = OUT / f"{name}.stg"
         stg_format.save(model, path, encodings=encodings)
         stored = stg_format.load(path)  # render what the file holds (quantized values included)
-        renders = np.stack([expected_render(stored, cam, t, weights) for t in times]).astype(np.float32)
+        camera = stored.cameras[0]
+        renders = np.stack([expected_render(stored, camera, t, weights) for t in times]).astype(np.float32)
         np.savez_compressed(OUT / f"{name}.expected.npz", times=np.array(times), camera=np.array(0), rgb=renders)
         index[name] = {"file": path.name, "encodings": encodings or "f32", "segments": len(model.segments),
                        "expected": f"{name}.expected.npz"}
