@@ -344,4 +344,4 @@ def test_cuda_without_gpu_is_refused_clearly():
 def test_kernels_under_simulator(run_under_simulator):
     if RUN:
         pytest.skip("the kernels run directly in this process")
-    run_under_simulator(__file__, passed=22)
+    run_under_simulator(__file__, passed=23)
