@@ -2,8 +2,8 @@
 
     rectangles(means2d, conic, opacity, radius, valid, width, height) -> rects, tiles, visible
     forward(..., out, trans, n_last)         composite every tile front to back (formats/stg-v1.md, 3)
-    backward(..., grad_out, parts, grads)    the vector-Jacobian product, back to front
-    partitions(tile_order, tile_start, n)    the tiles dealt to backward's partitions
+    backward(..., grad_out, entry_grads)     the vector-Jacobian product, back to front, per list entry
+    sum_entries(tile_ids, entry_grads, grads) per Gaussian: the sum of its entries' gradients
     constants(dtype)                         the spec's constants as the kernels take them
 
 The projection (stg_train.render.numba_projection) hands over per Gaussian i:
@@ -25,9 +25,10 @@ gradient and v_i = [f_i, 1, z_i]:
     alpha_i = o_i exp(-power): dL/do_i = dL/dalpha_i exp(-power), dL/dpower = -alpha_i dL/dalpha_i
     (no gradient where the 0.99 cap applies), and power's derivatives in mean2d and the conic.
 
-Per-Gaussian sums are race-free: tiles are dealt to `parts` fixed partitions (round robin in order of
-decreasing list length), each with its own gradient rows; a partition's tiles are processed in a fixed
-order, so the gradient is the same in every run with the same number of partitions.
+Per-Gaussian sums are race-free and reproducible: `backward` writes each tile-list entry's gradient
+into its own row (every entry belongs to one tile, which one thread processes), and `sum_entries` adds
+the rows up per Gaussian in list order, serially: the gradient is the same in every run, whatever the
+number of threads.
 Works in the inputs' float dtype (float32 for training, float64 for the gradient checks).
 """
 from __future__ import annotations
@@ -182,10 +183,10 @@ def _feature(features, g, ch, zero):
 
 
 @numba.njit(inline="always")
-def _add_feature(G, g, ch, value, channels):
-    """G[g, GRAD_FEATURES + ch] += value, for a real channel (ch < channels)."""
+def _set_feature(E, ch, value, channels):
+    """E[GRAD_FEATURES + ch] = value, for a real channel (ch < channels)."""
     if ch < channels:
-        G[g, GRAD_FEATURES + ch] += value
+        E[GRAD_FEATURES + ch] = value
 
 
 #: Planes of a tile's state shared by both kernels: the pixel centres.
@@ -283,11 +284,11 @@ def forward(means2d, conic, opacity, features, depth, rects, tile_start, tile_id
 
 
 @numba.njit(parallel=True, cache=True, fastmath={"contract", "reassoc", "nsz"})
-def backward(means2d, conic, opacity, features, depth, rects, tile_start, tile_ids, tiles_x, consts, trans,
-             n_last, grad_out, parts, part_start, grads):
-    """Accumulate the gradient of every contribution into grads (P, M, 7 + C) (columns GRAD_*), the
-    rows of partition q in grads[q]; partition q processes the tiles parts[part_start[q]:part_start[q +
-    1]] in that order. Sum grads over its first axis afterwards.
+def backward(means2d, conic, opacity, features, depth, rects, tile_start, tile_ids, tile_order, tiles_x, consts,
+             trans, n_last, grad_out, entry_grads):
+    """The gradient of every tile-list entry's contributions: entry_grads (entries, 7 + C) (columns
+    GRAD_*), row k for the Gaussian tile_ids[k] in its tile (zero where no pixel of the tile reached
+    it). Tiles are taken in tile_order, in parallel. sum_entries adds the rows up per Gaussian.
 
     trans (H, W): the forward pass's final transmittance, made non-negative; n_last (H, W) from the
     forward pass; grad_out (C + 2, H, W): dL/d out, planes as forward's `out`; all padded to whole
@@ -298,117 +299,116 @@ def backward(means2d, conic, opacity, features, depth, rects, tile_start, tile_i
     half, one, zero, max_alpha, min_alpha = consts[0], consts[1], consts[2], consts[3], consts[4]
     channels = features.shape[1]
     c3 = _padded_channels(channels)
-    for q in numba.prange(part_start.shape[0] - 1):
-        G = grads[q]
-        for j in range(part_start[q], part_start[q + 1]):
-            tile = parts[j]
-            x0 = (tile % tiles_x) * TILE
-            y0 = (tile // tiles_x) * TILE
-            S = _tile_state(B_GFEATURES + c3, x0, y0, grads.dtype)
-            deepest = 0
-            for r in range(TILE):
-                y = y0 + r
+    for i in numba.prange(tile_order.shape[0]):
+        tile = tile_order[i]
+        x0 = (tile % tiles_x) * TILE
+        y0 = (tile // tiles_x) * TILE
+        S = _tile_state(B_GFEATURES + c3, x0, y0, entry_grads.dtype)
+        deepest = 0
+        for r in range(TILE):
+            y = y0 + r
+            for l in range(TILE):
+                p = _pixel(r, l)
+                S[B_T * PLANE + p] = trans[y, x0 + l]
+                S[B_COUNT * PLANE + p] = n_last[y, x0 + l]
+                S[B_GALPHA * PLANE + p] = grad_out[channels, y, x0 + l]
+                S[B_GDEPTH * PLANE + p] = grad_out[channels + 1, y, x0 + l]
+                deepest = max(deepest, n_last[y, x0 + l])
+            for ch in range(channels):
                 for l in range(TILE):
-                    p = _pixel(r, l)
-                    S[B_T * PLANE + p] = trans[y, x0 + l]
-                    S[B_COUNT * PLANE + p] = n_last[y, x0 + l]
-                    S[B_GALPHA * PLANE + p] = grad_out[channels, y, x0 + l]
-                    S[B_GDEPTH * PLANE + p] = grad_out[channels + 1, y, x0 + l]
-                    deepest = max(deepest, n_last[y, x0 + l])
-                for ch in range(channels):
-                    for l in range(TILE):
-                        S[(B_GFEATURES + ch) * PLANE + _pixel(r, l)] = grad_out[ch, y, x0 + l]
-            start = tile_start[tile]
-            for k in range(start + deepest - 1, start - 1, -1):
-                g = tile_ids[k]
-                mx, my, a, b, c = means2d[g, 0], means2d[g, 1], conic[g, 0], conic[g, 1], conic[g, 2]
-                o, z = opacity[g], depth[g]
-                f0, f1, f2 = _feature(features, g, 0, zero), _feature(features, g, 1, zero), \
-                    _feature(features, g, 2, zero)
-                left = S[CENTRE_X * PLANE + _pixel(0, max(rects[g, 0] - x0, 0))]
-                right = S[CENTRE_X * PLANE + _pixel(0, min(rects[g, 1] - x0, TILE - 1))]
-                entry = _as_dtype(S, k - start)
-                s_o = s_mx = s_my = s_a = s_b = s_c = s_z = s_f0 = s_f1 = s_f2 = zero
+                    S[(B_GFEATURES + ch) * PLANE + _pixel(r, l)] = grad_out[ch, y, x0 + l]
+        start = tile_start[tile]
+        entry_grads[start + deepest:tile_start[tile + 1]] = zero  # entries no pixel reached
+        for k in range(start + deepest - 1, start - 1, -1):
+            E = entry_grads[k]
+            g = tile_ids[k]
+            mx, my, a, b, c = means2d[g, 0], means2d[g, 1], conic[g, 0], conic[g, 1], conic[g, 2]
+            o, z = opacity[g], depth[g]
+            f0, f1, f2 = _feature(features, g, 0, zero), _feature(features, g, 1, zero), \
+                _feature(features, g, 2, zero)
+            left = S[CENTRE_X * PLANE + _pixel(0, max(rects[g, 0] - x0, 0))]
+            right = S[CENTRE_X * PLANE + _pixel(0, min(rects[g, 1] - x0, TILE - 1))]
+            entry = _as_dtype(S, k - start)
+            s_o = s_mx = s_my = s_a = s_b = s_c = s_z = s_f0 = s_f1 = s_f2 = zero
+            for strip in range(STRIPS):
+                lo, n = _run(rects, g, x0, y0, strip)
+                if n == 0:
+                    continue
+                V = S[lo:]
+                # g . v less its first three feature channels (added in the main loop)
+                for l in range(n):
+                    V[l + B_GV * PLANE] = V[l + B_GALPHA * PLANE] + V[l + B_GDEPTH * PLANE] * z
+                for ch in range(3, c3, 3):
+                    fa, fb, fc = _feature(features, g, ch, zero), _feature(features, g, ch + 1, zero), \
+                        _feature(features, g, ch + 2, zero)
+                    F = V[(B_GFEATURES + ch) * PLANE:]
+                    for l in range(n):
+                        V[l + B_GV * PLANE] += F[l] * fa + F[l + PLANE] * fb + F[l + 2 * PLANE] * fc
+                for l in range(n):
+                    px = V[l + CENTRE_X * PLANE]
+                    dx = px - mx
+                    dy = V[l + CENTRE_Y * PLANE] - my
+                    power = half * (a * dx * dx + c * dy * dy) + b * dx * dy
+                    e = exp_neg(power)
+                    raw = o * e
+                    alpha = min(max_alpha, raw)
+                    act = ((px >= left) & (px <= right) & (entry < V[l + B_COUNT * PLANE]) & (power >= zero)
+                           & (alpha >= min_alpha))
+                    t_after = V[l + B_T * PLANE]
+                    inv = one / (one - alpha)
+                    t_before = t_after * inv
+                    w = alpha * t_before if act else zero
+                    g0 = V[l + B_GFEATURES * PLANE]
+                    g1 = V[l + (B_GFEATURES + 1) * PLANE]
+                    g2 = V[l + (B_GFEATURES + 2) * PLANE]
+                    gv = V[l + B_GV * PLANE] + g0 * f0 + g1 * f1 + g2 * f2
+                    d_alpha = t_before * gv - V[l + B_SUFFIX * PLANE] * inv
+                    V[l + B_SUFFIX * PLANE] += w * gv
+                    V[l + B_T * PLANE] = t_before if act else t_after
+                    V[l + B_WEIGHT * PLANE] = w
+                    s_z += w * V[l + B_GDEPTH * PLANE]
+                    s_f0 += w * g0
+                    s_f1 += w * g1
+                    s_f2 += w * g2
+                    d_alpha = d_alpha if act & (raw <= max_alpha) else zero  # capped: no gradient
+                    s_o += d_alpha * (e if act else zero)
+                    d_power = -d_alpha * alpha
+                    s_mx -= d_power * (a * dx + b * dy)
+                    s_my -= d_power * (b * dx + c * dy)
+                    s_a += d_power * half * dx * dx
+                    s_b += d_power * dx * dy
+                    s_c += d_power * half * dy * dy
+            for ch in range(3, c3, 3):  # further channels, three at a time
+                s_fa = s_fb = s_fc = zero
                 for strip in range(STRIPS):
                     lo, n = _run(rects, g, x0, y0, strip)
-                    if n == 0:
-                        continue
                     V = S[lo:]
-                    # g . v less its first three feature channels (added in the main loop)
+                    F = V[(B_GFEATURES + ch) * PLANE:]
                     for l in range(n):
-                        V[l + B_GV * PLANE] = V[l + B_GALPHA * PLANE] + V[l + B_GDEPTH * PLANE] * z
-                    for ch in range(3, c3, 3):
-                        fa, fb, fc = _feature(features, g, ch, zero), _feature(features, g, ch + 1, zero), \
-                            _feature(features, g, ch + 2, zero)
-                        F = V[(B_GFEATURES + ch) * PLANE:]
-                        for l in range(n):
-                            V[l + B_GV * PLANE] += F[l] * fa + F[l + PLANE] * fb + F[l + 2 * PLANE] * fc
-                    for l in range(n):
-                        px = V[l + CENTRE_X * PLANE]
-                        dx = px - mx
-                        dy = V[l + CENTRE_Y * PLANE] - my
-                        power = half * (a * dx * dx + c * dy * dy) + b * dx * dy
-                        e = exp_neg(power)
-                        raw = o * e
-                        alpha = min(max_alpha, raw)
-                        act = ((px >= left) & (px <= right) & (entry < V[l + B_COUNT * PLANE]) & (power >= zero)
-                               & (alpha >= min_alpha))
-                        t_after = V[l + B_T * PLANE]
-                        inv = one / (one - alpha)
-                        t_before = t_after * inv
-                        w = alpha * t_before if act else zero
-                        g0 = V[l + B_GFEATURES * PLANE]
-                        g1 = V[l + (B_GFEATURES + 1) * PLANE]
-                        g2 = V[l + (B_GFEATURES + 2) * PLANE]
-                        gv = V[l + B_GV * PLANE] + g0 * f0 + g1 * f1 + g2 * f2
-                        d_alpha = t_before * gv - V[l + B_SUFFIX * PLANE] * inv
-                        V[l + B_SUFFIX * PLANE] += w * gv
-                        V[l + B_T * PLANE] = t_before if act else t_after
-                        V[l + B_WEIGHT * PLANE] = w
-                        s_z += w * V[l + B_GDEPTH * PLANE]
-                        s_f0 += w * g0
-                        s_f1 += w * g1
-                        s_f2 += w * g2
-                        d_alpha = d_alpha if act & (raw <= max_alpha) else zero  # capped: no gradient
-                        s_o += d_alpha * (e if act else zero)
-                        d_power = -d_alpha * alpha
-                        s_mx -= d_power * (a * dx + b * dy)
-                        s_my -= d_power * (b * dx + c * dy)
-                        s_a += d_power * half * dx * dx
-                        s_b += d_power * dx * dy
-                        s_c += d_power * half * dy * dy
-                for ch in range(3, c3, 3):  # further channels, three at a time
-                    s_fa = s_fb = s_fc = zero
-                    for strip in range(STRIPS):
-                        lo, n = _run(rects, g, x0, y0, strip)
-                        V = S[lo:]
-                        F = V[(B_GFEATURES + ch) * PLANE:]
-                        for l in range(n):
-                            w = V[l + B_WEIGHT * PLANE]
-                            s_fa += w * F[l]
-                            s_fb += w * F[l + PLANE]
-                            s_fc += w * F[l + 2 * PLANE]
-                    _add_feature(G, g, ch, s_fa, channels)
-                    _add_feature(G, g, ch + 1, s_fb, channels)
-                    _add_feature(G, g, ch + 2, s_fc, channels)
-                _add_feature(G, g, 0, s_f0, channels)
-                _add_feature(G, g, 1, s_f1, channels)
-                _add_feature(G, g, 2, s_f2, channels)
-                G[g, GRAD_MEANS2D] += s_mx
-                G[g, GRAD_MEANS2D + 1] += s_my
-                G[g, GRAD_CONIC] += s_a
-                G[g, GRAD_CONIC + 1] += s_b
-                G[g, GRAD_CONIC + 2] += s_c
-                G[g, GRAD_OPACITY] += s_o
-                G[g, GRAD_DEPTH] += s_z
+                        w = V[l + B_WEIGHT * PLANE]
+                        s_fa += w * F[l]
+                        s_fb += w * F[l + PLANE]
+                        s_fc += w * F[l + 2 * PLANE]
+                _set_feature(E, ch, s_fa, channels)
+                _set_feature(E, ch + 1, s_fb, channels)
+                _set_feature(E, ch + 2, s_fc, channels)
+            _set_feature(E, 0, s_f0, channels)
+            _set_feature(E, 1, s_f1, channels)
+            _set_feature(E, 2, s_f2, channels)
+            E[GRAD_MEANS2D] = s_mx
+            E[GRAD_MEANS2D + 1] = s_my
+            E[GRAD_CONIC] = s_a
+            E[GRAD_CONIC + 1] = s_b
+            E[GRAD_CONIC + 2] = s_c
+            E[GRAD_OPACITY] = s_o
+            E[GRAD_DEPTH] = s_z
 
 
-def partitions(tile_order: np.ndarray, tile_start: np.ndarray, n_parts: int):
-    """Deal the non-empty tiles (tile_order: by decreasing list length) round robin to n_parts
-    partitions. Returns (parts, part_start): partition q owns parts[part_start[q]:part_start[q + 1]]."""
-    busy = tile_order[tile_start[tile_order + 1] > tile_start[tile_order]]
-    groups = [busy[q::n_parts] for q in range(n_parts)]
-    part_start = np.zeros(n_parts + 1, np.int64)
-    part_start[1:] = np.cumsum([len(x) for x in groups])
-    parts = np.concatenate(groups) if len(busy) else np.zeros(0, busy.dtype)
-    return parts, part_start
+@numba.njit(cache=True)
+def sum_entries(tile_ids, entry_grads, grads):
+    """grads[g] += entry_grads[k] for every list entry k of Gaussian g = tile_ids[k], in increasing k
+    (serially: a fixed order of the sums). grads (M, 7 + C), zeros on entry."""
+    for k in range(tile_ids.shape[0]):
+        g = tile_ids[k]
+        for c in range(grads.shape[1]):
+            grads[g, c] += entry_grads[k, c]

@@ -5,9 +5,9 @@
 Same rules (formats/stg-v1.md, section 3) and same outputs as the torch splatter
 (stg_train.render.torch_splat), value for value. `Project` is the EWA projection
 (stg_train.render.numba_projection for pinholes, stg_train.render.numba_fisheye for fisheyes);
-`Composite` the tiles and compositing (stg_train.render.numba_kernels): its forward pass composites tile by tile and keeps two numbers per
-pixel, its backward pass walks each tile's list back to front. Memory is proportional to Gaussians
-plus pixels, never to their product. The depth order and the tile lists come from the runtime's
+`Composite` the tiles and compositing (stg_train.render.numba_kernels): its forward pass composites
+tile by tile and keeps two numbers per pixel, its backward pass walks each tile's list back to front.
+Memory is proportional to Gaussians plus pixels, never to their product. The depth order and the tile lists come from the runtime's
 splatter (stg_runtime.splat_cpu), so the forward pass draws what the Player draws. CPU tensors only.
 """
 from __future__ import annotations
@@ -38,9 +38,10 @@ def _numpy(t: Tensor) -> np.ndarray:
 
 
 class Project(torch.autograd.Function):
-    """EWA projection (pinhole or fisheye): (means (M, 3), quats (M, 4), scales (M, 3), opacities (M,), camera) -> (means2d
-    (M, 2), conic (M, 3), depth (M,), radius (M,) int64, valid (M,) bool), differentiable in means, quats
-    and scales (radius and valid are not; the opacities only decide validity)."""
+    """EWA projection (pinhole or fisheye): (means (M, 3), quats (M, 4), scales (M, 3), opacities (M,),
+    camera) -> (means2d (M, 2), conic (M, 3), depth (M,), radius (M,) int64, valid (M,) bool),
+    differentiable in means, quats and scales (radius and valid are not; the opacities only decide
+    validity)."""
 
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, camera):
@@ -108,14 +109,14 @@ class Composite(torch.autograd.Function):
         for k, g in ((channels, grad_alpha), (channels + 1, grad_depth_sum)):
             if g is not None:
                 grad_out[k, :height, :width] = g.detach().numpy()
-        n_parts = max(1, min(64, 4 * numba.get_num_threads()))
-        parts, part_start = kernels.partitions(tl.tile_order, tl.tile_start, n_parts)
-        grads = np.zeros((n_parts, m2d.shape[0], kernels.GRAD_FEATURES + channels), feat.dtype)
+        entry_grads = np.empty((tl.tile_ids.shape[0], kernels.GRAD_FEATURES + channels), feat.dtype)
         with numba.parallel_chunksize(1):
-            kernels.backward(m2d, con, opa, feat, dep, tl.rects, tl.tile_start, tl.tile_ids, tl.tiles_x,
-                             kernels.constants(feat.dtype), tl.t_final.copy(), tl.n_last, grad_out, parts,
-                             part_start, grads)
-        total = torch.from_numpy(grads.sum(0))
+            kernels.backward(m2d, con, opa, feat, dep, tl.rects, tl.tile_start, tl.tile_ids, tl.tile_order,
+                             tl.tiles_x, kernels.constants(feat.dtype), tl.t_final.copy(), tl.n_last, grad_out,
+                             entry_grads)
+        grads = np.zeros((m2d.shape[0], kernels.GRAD_FEATURES + channels), feat.dtype)
+        kernels.sum_entries(tl.tile_ids, entry_grads, grads)
+        total = torch.from_numpy(grads)
         return (total[:, 0:2], total[:, 2:5], total[:, kernels.GRAD_OPACITY], total[:, kernels.GRAD_FEATURES:],
                 total[:, kernels.GRAD_DEPTH], None, None, None, None)
 
@@ -126,8 +127,8 @@ def rasterize_numba(means: Tensor, quats: Tensor, scales: Tensor, opacities: Ten
 
     means (M, 3) world positions; quats (M, 4) wxyz (normalised here); scales (M, 3) standard deviations
     (world units); opacities (M,) or (M, 1) in [0, 1]; features (M, C); camera: a
-    stg_runtime.camera.Camera, pinhole or fisheye (fixed, no gradient). CPU tensors of one float dtype (float32 to train,
-    float64 for gradient checks). Returns a RenderOutput like the torch splatter's."""
+    stg_runtime.camera.Camera, pinhole or fisheye (fixed, no gradient). CPU tensors of one float dtype
+    (float32 to train, float64 for gradient checks). Returns a RenderOutput like the torch splatter's."""
     if means.device.type != "cpu":
         raise ValueError(f"the numba splatter runs on the CPU; got tensors on {means.device}")
     W, H = camera.width, camera.height
