@@ -29,9 +29,10 @@ def ssim(img: Tensor, ref: Tensor, window: int = 11, sigma: float = 1.5) -> Tens
     x, y = img.permute(0, 3, 1, 2), ref.permute(0, 3, 1, 2)
     c = x.shape[1]
     g = _gauss_1d(window, sigma, x.device, x.dtype)
-    # The five local means in one filtering pass: x, y, x^2, y^2, xy.
-    moments = _blur(torch.cat([x, y, x * x, y * y, x * y], 1), g)
-    mu_x, mu_y, exx, eyy, exy = moments.split(c, 1)
+    # The five local means, in two filtering passes: x, x^2, xy (differentiated) and y, y^2 (the
+    # reference: no gradient, so the backward pass filters 9 channels, not 15).
+    mu_x, exx, exy = _blur(torch.cat([x, x * x, x * y], 1), g).split(c, 1)
+    mu_y, eyy = _blur(torch.cat([y, y * y], 1), g).split(c, 1)
     sxx, syy, sxy = exx - mu_x * mu_x, eyy - mu_y * mu_y, exy - mu_x * mu_y
     c1, c2 = 0.01 ** 2, 0.03 ** 2
     s = ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x ** 2 + mu_y ** 2 + c1) * (sxx + syy + c2))
