@@ -9,7 +9,8 @@ backward pass), "torch" (stg_train.render.torch_splat, the readable reference, a
 (stg_train.render.gsplat_backend, gsplat's CUDA kernels). numba and gsplat are imported only when used.
 All follow formats/stg-v1.md, section 3, and return the same RenderOutput. Cameras may be pinhole or
 fisheye (stg_runtime Camera.model): torch and numba draw both; gsplat draws pinholes and equidistant
-fisheyes and hands a fisheye with k1..k4 to the torch splatter (gsplat_backend's docstring says why; docs/training.md, "Camera models").
+fisheyes and hands a fisheye with k1..k4 to the torch splatter (gsplat_backend's docstring says why;
+docs/training.md, "Camera models").
 """
 from __future__ import annotations
 

@@ -7,8 +7,9 @@ Same rules (formats/stg-v1.md, section 3) and same outputs as the torch splatter
 (stg_train.render.numba_projection for pinholes, stg_train.render.numba_fisheye for fisheyes);
 `Composite` the tiles and compositing (stg_train.render.numba_kernels): its forward pass composites
 tile by tile and keeps two numbers per pixel, its backward pass walks each tile's list back to front.
-Memory is proportional to Gaussians plus pixels, never to their product. The depth order and the tile lists come from the runtime's
-splatter (stg_runtime.splat_cpu), so the forward pass draws what the Player draws. CPU tensors only.
+Memory is proportional to Gaussians plus pixels, never to their product. The depth order and the tile
+lists come from the runtime's splatter (stg_runtime.splat_cpu), so the forward pass draws what the
+Player draws. CPU tensors only.
 """
 from __future__ import annotations
 
