@@ -7,7 +7,8 @@ frame. Fisheye cameras go to COLMAP as OPENCV_FISHEYE (stg_train.data.colmap), a
 verified against the known poses (pycolmap.guided_geometric_verification) rather than by RANSAC. The
 frames' points are merged with temporal centre j / num_frames and subsampled as the reference does:
 the first frame keeps all its points, every other frame keeps KEEP_FRACTION of its points chosen by
-farthest-point sampling (each kept point is the one farthest from the points kept before it), so repeated static structure is thinned while the coverage of each frame is kept.
+farthest-point sampling (each kept point is the one farthest from the points kept before it), so
+repeated static structure is thinned while the coverage of each frame is kept.
 
 The result is cached as an .npz (default folder `<dataset.path>/.stg_cache/sfm/`), keyed by the cameras,
 a sample of the frames' pixels and the settings, so a second run does not run pycolmap again.
