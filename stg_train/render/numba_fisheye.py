@@ -25,7 +25,7 @@ import numpy as np
 
 from stg_runtime.spec import BLUR, MIN_ALPHA, NEAR
 
-from .numba_projection import axes, axes_backward, conic_backward
+from .numba_projection import axes, axes_backward, conic_backward, store_conic
 
 
 @numba.njit(cache=True)
@@ -92,16 +92,8 @@ def forward(means, quats, scales, opacities, cam, means2d, conic, depth, radius,
         _, _, _, fmap, _, _, a, b, c = _covariance(cam, quats, scales, i, x, y, z)
         means2d[i, 0] = cam[12] * x * fmap[6] + cam[14]
         means2d[i, 1] = cam[13] * y * fmap[6] + cam[15]
-        det = a * c - b * b
-        if not np.float64(opacities[i]) >= MIN_ALPHA or not det > 0.0:
-            continue
-        valid[i] = True
-        conic[i, 0] = c / det
-        conic[i, 1] = -b / det
-        conic[i, 2] = a / det
-        mid = 0.5 * (a + c)
-        lam = mid + math.sqrt(max(mid * mid - det, 0.1))
-        radius[i] = int(math.ceil(3.0 * math.sqrt(max(lam, 0.0))))
+        if np.float64(opacities[i]) >= MIN_ALPHA:
+            store_conic(a, b, c, i, conic, radius, valid)
 
 
 @numba.njit(parallel=True, cache=True)

@@ -81,6 +81,23 @@ def _covariance(cam, quats, scales, i, x, y, z):
     return m, q, norm, jac, t, a, b, c
 
 
+@numba.njit(cache=True)
+def store_conic(a, b, c, i, conic, radius, valid):
+    """For the 2D covariance [[a, b], [b, c]] (blur included) of Gaussian i: when its determinant is
+    positive, valid[i] = True, conic[i] = its inverse [A, B, C] and radius[i] = the spec's 3-sigma radius
+    (pixels); else nothing changes."""
+    det = a * c - b * b
+    if not det > 0.0:
+        return
+    valid[i] = True
+    conic[i, 0] = c / det
+    conic[i, 1] = -b / det
+    conic[i, 2] = a / det
+    mid = 0.5 * (a + c)
+    lam = mid + math.sqrt(max(mid * mid - det, 0.1))
+    radius[i] = int(math.ceil(3.0 * math.sqrt(max(lam, 0.0))))
+
+
 @numba.njit(parallel=True, cache=True)
 def forward(means, quats, scales, opacities, cam, means2d, conic, depth, radius, valid):
     """Fill means2d (M, 2), conic (M, 3), depth (M,), radius (M,) int64 and valid (M,) bool."""
@@ -100,16 +117,7 @@ def forward(means, quats, scales, opacities, cam, means2d, conic, depth, radius,
         if not in_front or not np.float64(opacities[i]) >= MIN_ALPHA:
             continue
         _, _, _, _, _, a, b, c = _covariance(cam, quats, scales, i, x, y, z)
-        det = a * c - b * b
-        if not det > 0.0:
-            continue
-        valid[i] = True
-        conic[i, 0] = c / det
-        conic[i, 1] = -b / det
-        conic[i, 2] = a / det
-        mid = 0.5 * (a + c)
-        lam = mid + math.sqrt(max(mid * mid - det, 0.1))
-        radius[i] = int(math.ceil(3.0 * math.sqrt(max(lam, 0.0))))
+        store_conic(a, b, c, i, conic, radius, valid)
 
 
 @numba.njit(parallel=True, cache=True)

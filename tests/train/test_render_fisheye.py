@@ -13,6 +13,7 @@ from stg_train.render import rasterize  # noqa: E402
 from stg_train.render.torch_splat import project  # noqa: E402
 
 from ..scenes import clean_scenes, random_scene  # noqa: E402
+from .test_render_numba import _outputs_and_grads, _tensors  # noqa: E402
 
 NAMES = ("means", "quats", "scales", "opacities", "features", "means2d")
 
@@ -24,22 +25,6 @@ def _one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(old)
-
-
-def _tensors(arrays, dtype=torch.float64, grad=False):
-    return [torch.tensor(np.asarray(a, np.float64), dtype=dtype, requires_grad=grad) for a in arrays]
-
-
-def _outputs_and_grads(arrays, cam, backend, seed=1):
-    """Images, then the gradients of a random linear function of all three images w.r.t. every input
-    and means2d (float64)."""
-    inputs = _tensors(arrays, grad=True)
-    out = rasterize(*inputs, cam, backend=backend)
-    gen = torch.Generator().manual_seed(seed)
-    loss = sum((img * torch.randn(img.shape, generator=gen, dtype=img.dtype)).sum()
-               for img in (out.features, out.alpha, out.depth))
-    loss.backward()
-    return out, [x.grad for x in inputs] + [out.means2d.grad]
 
 
 def _narrow_fisheye(width=40, height=32):
