@@ -25,12 +25,13 @@ from pathlib import Path
 import stg_train  # noqa: F401  (first: it configures OpenMP before torch loads)
 import numpy as np
 
-from stg_runtime.player import Player
 from stg_train.data import load_dataset
-from stg_train.metrics import psnr
 from stg_train.pipeline import train
 from stg_train.synthetic import SyntheticScene, write_immersive
 from stg_train.trainer import TrainConfig
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from init_layouts import novel_psnr  # noqa: E402  (the same evaluation of novel views)
 
 
 def write_rigs(data: Path, scene: SyntheticScene, variants, cameras: int, frames: int, fps: float,
@@ -41,17 +42,6 @@ def write_rigs(data: Path, scene: SyntheticScene, variants, cameras: int, frames
         if not (folder / "models.json").is_file():
             write_immersive(folder, scene, num_cameras=cameras, num_frames=frames, fps=fps, width=size[0],
                             height=size[1], hfov_deg=hfov, model=variant)
-
-
-def novel_psnr(model: Path, scene: SyntheticScene, cams, frames: int, fps: float) -> dict:
-    """Mean PSNR (dB) of the model against the ray-traced scene, per novel camera, every 3rd frame."""
-    player = Player(model, device="cpu")
-    out = {}
-    for cam in cams:
-        values = [psnr(player.render(cam, j / fps), np.rint(scene.render(cam, j / fps) * 255) / 255)
-                  for j in range(0, frames, 3)]
-        out[cam.name] = float(np.mean(values))
-    return out
 
 
 def main() -> None:
@@ -82,7 +72,7 @@ def main() -> None:
         config = TrainConfig(iterations=args.iterations)
         print(f"== {variant}: {dataset}; {config.iterations} steps", flush=True)
         metrics = train(dataset, out / variant, config, quiet=True, lpips={})
-        views = novel_psnr(out / variant / "model.stg", scene, novel, args.frames, args.fps)
+        views = novel_psnr(out / variant / "model.stg", scene, {c.name: c for c in novel}, args.frames, args.fps)
         row = {"variant": variant, "hfov": args.hfov, "heldout_psnr": metrics["heldout"]["psnr"],
                "novel_psnr": views, "novel_mean": float(np.mean(list(views.values()))),
                "gaussians": metrics["gaussians"], "file_bytes": metrics["file_bytes"],

@@ -25,7 +25,7 @@ import numpy as np
 
 from stg_runtime.spec import BLUR, MIN_ALPHA, NEAR
 
-from .numba_projection import axes, axes_backward, conic_backward, store_conic
+from .numba_projection import axes, axes_backward, camera_point, conic_backward, store_conic
 
 
 @numba.njit(cache=True)
@@ -77,10 +77,7 @@ def _covariance(cam, quats, scales, i, x, y, z):
 def forward(means, quats, scales, opacities, cam, means2d, conic, depth, radius, valid):
     """Fill means2d (M, 2), conic (M, 3), depth (M,), radius (M,) int64 and valid (M,) bool."""
     for i in numba.prange(means.shape[0]):
-        wx, wy, wz = np.float64(means[i, 0]), np.float64(means[i, 1]), np.float64(means[i, 2])
-        x = cam[0] * wx + cam[1] * wy + cam[2] * wz + cam[9]
-        y = cam[3] * wx + cam[4] * wy + cam[5] * wz + cam[10]
-        z = cam[6] * wx + cam[7] * wy + cam[8] * wz + cam[11]
+        x, y, z = camera_point(cam, means, i)
         depth[i] = z
         means2d[i, 0] = cam[14]
         means2d[i, 1] = cam[15]
@@ -101,10 +98,7 @@ def backward(means, quats, scales, cam, valid, g_means2d, g_conic, g_depth, g_me
     """The vector-Jacobian product of `forward`: from dL/d means2d (M, 2), dL/d conic (M, 3) and
     dL/d depth (M,), fill dL/d means (M, 3), dL/d quats (M, 4) and dL/d scales (M, 3)."""
     for i in numba.prange(means.shape[0]):
-        wx, wy, wz = np.float64(means[i, 0]), np.float64(means[i, 1]), np.float64(means[i, 2])
-        x = cam[0] * wx + cam[1] * wy + cam[2] * wz + cam[9]
-        y = cam[3] * wx + cam[4] * wy + cam[5] * wz + cam[10]
-        z = cam[6] * wx + cam[7] * wy + cam[8] * wz + cam[11]
+        x, y, z = camera_point(cam, means, i)
         g_quats[i, 0] = g_quats[i, 1] = g_quats[i, 2] = g_quats[i, 3] = 0.0
         g_scales[i, 0] = g_scales[i, 1] = g_scales[i, 2] = 0.0
         gx, gy, gz = 0.0, 0.0, np.float64(g_depth[i])

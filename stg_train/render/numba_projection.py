@@ -1,5 +1,6 @@
 """The pinhole EWA projection of the CPU training splatter, forward and backward, in numba (no torch
-here), and the parts that stg_train.render.numba_fisheye shares (axes, conic_backward, axes_backward).
+here), and the parts that stg_train.render.numba_fisheye shares (camera_point, axes, store_conic,
+conic_backward, axes_backward).
 
     forward(means, quats, scales, opacities, cam, means2d, conic, depth, radius, valid)
     backward(means, quats, scales, cam, valid, g_means2d, g_conic, g_depth, g_means, g_quats, g_scales)
@@ -81,6 +82,15 @@ def _covariance(cam, quats, scales, i, x, y, z):
     return m, q, norm, jac, t, a, b, c
 
 
+@numba.njit(inline="always")
+def camera_point(cam, means, i):
+    """Gaussian i's mean (means (M, 3), world) in camera space, (x, y, z) float64: R w + t (cam as
+    stg_runtime.projection.camera_params)."""
+    wx, wy, wz = np.float64(means[i, 0]), np.float64(means[i, 1]), np.float64(means[i, 2])
+    return (cam[0] * wx + cam[1] * wy + cam[2] * wz + cam[9], cam[3] * wx + cam[4] * wy + cam[5] * wz + cam[10],
+            cam[6] * wx + cam[7] * wy + cam[8] * wz + cam[11])
+
+
 @numba.njit(cache=True)
 def store_conic(a, b, c, i, conic, radius, valid):
     """For the 2D covariance [[a, b], [b, c]] (blur included) of Gaussian i: when its determinant is
@@ -102,10 +112,7 @@ def store_conic(a, b, c, i, conic, radius, valid):
 def forward(means, quats, scales, opacities, cam, means2d, conic, depth, radius, valid):
     """Fill means2d (M, 2), conic (M, 3), depth (M,), radius (M,) int64 and valid (M,) bool."""
     for i in numba.prange(means.shape[0]):
-        wx, wy, wz = np.float64(means[i, 0]), np.float64(means[i, 1]), np.float64(means[i, 2])
-        x = cam[0] * wx + cam[1] * wy + cam[2] * wz + cam[9]
-        y = cam[3] * wx + cam[4] * wy + cam[5] * wz + cam[10]
-        z = cam[6] * wx + cam[7] * wy + cam[8] * wz + cam[11]
+        x, y, z = camera_point(cam, means, i)
         depth[i] = z
         in_front = z > NEAR
         zs = z if in_front else 1.0
@@ -126,10 +133,7 @@ def backward(means, quats, scales, cam, valid, g_means2d, g_conic, g_depth, g_me
     dL/d depth (M,), fill dL/d means (M, 3), dL/d quats (M, 4) and dL/d scales (M, 3)."""
     fx, fy = cam[12], cam[13]
     for i in numba.prange(means.shape[0]):
-        wx, wy, wz = np.float64(means[i, 0]), np.float64(means[i, 1]), np.float64(means[i, 2])
-        x = cam[0] * wx + cam[1] * wy + cam[2] * wz + cam[9]
-        y = cam[3] * wx + cam[4] * wy + cam[5] * wz + cam[10]
-        z = cam[6] * wx + cam[7] * wy + cam[8] * wz + cam[11]
+        x, y, z = camera_point(cam, means, i)
         gu, gv = np.float64(g_means2d[i, 0]), np.float64(g_means2d[i, 1])
         gz = np.float64(g_depth[i])
         g_quats[i, 0] = g_quats[i, 1] = g_quats[i, 2] = g_quats[i, 3] = 0.0
