@@ -2,11 +2,14 @@
 """Ablation of the paper's Table 4 on the default synthetic scene: the full model, then each component
 switched off, trained with the same settings and seed; prints held-out PSNR (whole image, and apart for
 the dynamic and the static pixels), DSSIM1, Gaussians and training time per variant beside the full
-model, and the same dynamic / static PSNR at two novel views inside the rig (ground truth ray traced).
+model, the same dynamic / static PSNR at two novel views inside the rig (ground truth ray traced), and
+where the held-out camera's dynamic error is: PSNR and share of the squared error of its dynamic pixels
+by the object they show (the room, where objects pass or cast shadows; the moving sphere; ...).
 
     python bench/ablation.py [--iterations N] [--points N] [--cameras C] [--frames F] [--width W]
-                             [--height H] [--variants full,no-motion,...] [--set KEY=VALUE ...]
-                             [--no-novel] [--threads 2] [--json PATH]
+                             [--height H] [--supersample S] [--variants full,no-motion,...]
+                             [--set KEY=VALUE ...] [--true-motion] [--no-novel] [--threads 2]
+                             [--json PATH]
 
 Variants (TrainConfig settings): full; no-temporal-opacity (frozen temporal_opacity: opacity(t) = 1);
 no-motion (frozen motion = 0); no-rotation (frozen omega = 0); no-feature-splatting (the lite model:
@@ -20,7 +23,10 @@ figures use the trainer's renderer on the held-out camera at every frame against
 frames (PSNR in dB; DSSIM1 = (1 - SSIM) / 2, scikit-image SSIM, data_range 1; dynamic pixels:
 stg_train.metrics.dynamic_mask at its default threshold, per camera over the clip). Guided sampling only
 acts on views whose SSIM is below 0.91 at its start: with a sparse initialisation (e.g. `--points 300
---variants full,no-guided`) it matters, with a dense one it may not.
+--variants full,no-guided`) it matters, with a dense one it may not. --supersample 4 renders the scene's
+ground truth (and the novel views') with 4 x 4 rays per pixel: the demo's one ray per pixel leaves the
+checkered objects aliased, which no 3D model can reproduce (docs/dynamic.md). --true-motion (a
+diagnostic) gives the Gaussians initialised on the moving sphere its true trajectory as their motion.
 """
 from __future__ import annotations
 
@@ -36,8 +42,8 @@ import torch
 
 from stg_train.pipeline import DEMO_SCENE, DEMO_TRAINING, ensure_demo_scene
 from stg_train.data import load_n3v
-from stg_train.metrics import evaluate_images
-from stg_train.synthetic import SyntheticScene, novel_view_dataset
+from stg_train.metrics import dynamic_mask, evaluate_images
+from stg_train.synthetic import OBJECT_NAMES, SyntheticScene, novel_view_dataset
 from stg_train.trainer import Trainer, TrainConfig
 
 #: name -> (table label, TrainConfig overrides)
@@ -59,6 +65,52 @@ def evaluate(trainer: Trainer, dataset) -> dict:
     j / num_frames as in training), dynamic and static regions per camera (metrics.evaluate_images)."""
     r = evaluate_images(lambda ci, j: trainer.render_numpy(dataset.cameras[ci], j / dataset.num_frames), dataset)
     return {k: r[k] for k in FIGURES}
+
+
+def object_breakdown(trainer: Trainer, dataset, scene: SyntheticScene) -> dict:
+    """Where the dynamic error is: PSNR (dB) over the dynamic pixels of `dataset`'s first test camera
+    (its dynamic_mask over the clip) that show each object at their frame (SyntheticScene.object_ids
+    at time j / fps; "room" for the walls, floor and ceiling, which are dynamic where objects pass
+    or cast shadows), and that object's share of the dynamic pixels' squared error."""
+    ci = dataset.test_cameras[0]
+    frames = range(dataset.num_frames)
+    truth = [dataset.image(ci, j) for j in frames]
+    dynamic = dynamic_mask(truth)
+    err = np.stack([((trainer.render_numpy(dataset.cameras[ci], j / dataset.num_frames) - truth[j]) ** 2).mean(-1)
+                    for j in frames])
+    ids = np.stack([scene.object_ids(dataset.cameras[ci], j / dataset.fps) for j in frames])
+    total = err[:, dynamic].sum()
+    out = {}
+    for k in np.unique(ids):
+        m = (ids == k) & dynamic[None]
+        if m.any():
+            name = OBJECT_NAMES[k] if k >= 0 else "room"
+            out[name] = {"psnr": float(10 * np.log10(1 / max(err[m].mean(), 1e-12))),
+                         "share": float(err[m].sum() / max(total, 1e-12)), "pixels": int(m.sum())}
+    return out
+
+
+def give_true_motion(trainer: Trainer, scene: SyntheticScene, duration: float, radius: float = 0.4) -> int:
+    """Diagnostic: the initial Gaussians within `radius` of the moving sphere's centre at their temporal
+    centre c get its true trajectory as their motion: the least-squares cubic a dt + b dt^2 + c dt^3
+    through its centre's offsets at dt in [-0.5, 0.5] (normalised time; `duration` seconds per unit).
+    What the dynamic pixels gain then bounds what learning the sphere's motion can gain. Returns how
+    many Gaussians were given it."""
+    raw = trainer.params.raw
+    centres = raw["t_center"].detach().reshape(-1).cpu().numpy()
+    xyz = raw["xyz"].detach().cpu().numpy()
+    dts = np.linspace(-0.5, 0.5, 41)
+    basis = np.stack([dts, dts ** 2, dts ** 3], axis=1)
+    path = lambda tau: scene.moving_sphere_center(tau * duration)  # noqa: E731
+    given = 0
+    with torch.no_grad():
+        for i, c in enumerate(centres):
+            if np.linalg.norm(xyz[i] - path(c)) < radius:
+                offsets = np.stack([path(c + d) for d in dts]) - path(c)
+                coef = np.linalg.lstsq(basis, offsets, rcond=None)[0]  # (3 powers, xyz)
+                raw["motion"][i] = torch.as_tensor(coef.reshape(-1), dtype=raw["motion"].dtype)
+                given += 1
+    return given
 
 
 def parse_setting(text: str) -> tuple[str, object]:
@@ -89,6 +141,11 @@ def main() -> None:
     ap.add_argument("--set", type=parse_setting, action="append", default=[], metavar="KEY=VALUE",
                     help="a TrainConfig field for every variant (VALUE as JSON, else a string)")
     ap.add_argument("--no-novel", action="store_true", help="skip the two novel views inside the rig")
+    ap.add_argument("--supersample", type=int, default=1,
+                    help="rays per pixel side of the scene's ground truth (1, the demo's, is aliased where "
+                         "textures are finer than a pixel)")
+    ap.add_argument("--true-motion", action="store_true",
+                    help="diagnostic: give the Gaussians initialised on the moving sphere its true trajectory")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--data", default=None, help="scene folder (generated once; default: a temp folder per size)")
@@ -99,13 +156,15 @@ def main() -> None:
     if unknown:
         ap.error(f"unknown variant(s) {unknown}; choose from {list(VARIANTS)}")
     torch.set_num_threads(args.threads)
-    size = f"{args.cameras}x{args.frames}-{args.width}x{args.height}"
+    size = f"{args.cameras}x{args.frames}-{args.width}x{args.height}" + (f"-ss{args.supersample}" if args.supersample > 1 else "")
     data = Path(args.data or os.path.join(tempfile.gettempdir(), f"stg-ablation-scene-{size}"))
-    ensure_demo_scene(data, cameras=args.cameras, frames=args.frames, width=args.width, height=args.height)
+    ensure_demo_scene(data, cameras=args.cameras, frames=args.frames, width=args.width, height=args.height,
+                      supersample=args.supersample)
     ds = load_n3v(data, prefer_png=True)
     settings = dict(args.set)
-    novel = None if args.no_novel else novel_view_dataset(SyntheticScene(seed=0, duration=args.frames / ds.fps),
-                                                          args.frames, ds.fps, args.width, args.height)
+    scene = SyntheticScene(seed=0, duration=args.frames / ds.fps)
+    novel = None if args.no_novel else novel_view_dataset(scene, args.frames, ds.fps, args.width, args.height,
+                                                          supersample=args.supersample)
     print(f"{ds}; {args.iterations} iterations, {args.points} initial points, seed {args.seed}, "
           f"{args.threads} threads, settings {settings}", flush=True)
 
@@ -115,11 +174,15 @@ def main() -> None:
         cfg = TrainConfig(**{**DEMO_TRAINING, "iterations": args.iterations, "num_points": args.points,
                              "seed": args.seed, **settings, **overrides})
         trainer = Trainer(ds, cfg)
+        if args.true_motion:
+            print(f"  {give_true_motion(trainer, scene, args.frames / ds.fps)} Gaussians given the moving sphere's "
+                  "true trajectory", flush=True)
         trainer.train(progress=False)
         guided = next((s for s in trainer.strategies if hasattr(s, "chosen")), None)
         added = sum(e["added"] for e in guided.log) if guided is not None else 0
         results[name] = {"label": label, **evaluate(trainer, ds),
                          "novel": None if novel is None else evaluate(trainer, novel), "gaussians": trainer.params.count,
+                         "objects": object_breakdown(trainer, ds, scene),
                          "train_seconds": trainer.seconds, "guided_added": added,
                          "guided_log": [] if guided is None else guided.log,
                          "guided_view_ssim": [] if guided is None else guided.scores}
@@ -129,6 +192,8 @@ def main() -> None:
         print(f"  {label:<34} {r['psnr']:6.2f} dB  dynamic / static {_fmt(r['dynamic_psnr'])} / "
               f"{_fmt(r['static_psnr'])} dB{novel_text}  DSSIM1 {r['dssim1']:.4f}  {r['gaussians']:6d} Gaussians  "
               f"{r['train_seconds']:6.0f} s  (guided added {added})", flush=True)
+        print("    held-out dynamic pixels by object (PSNR, share of their squared error): " + ", ".join(
+            f"{k} {v['psnr']:.2f} dB {100 * v['share']:.0f}%" for k, v in r["objects"].items()), flush=True)
         if guided is not None and guided.scores:
             print(f"    training-view SSIM at guided_start {trainer.schedule.guided_start}: lowest "
                   f"{guided.scores[0][0]:.3f}, highest {guided.scores[-1][0]:.3f}; sampling: {guided.log}", flush=True)
