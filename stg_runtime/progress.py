@@ -94,3 +94,27 @@ def progress_callback(desc: str, enabled: bool = True):
 
 def _fmt(v) -> str:
     return f"{v:.4g}" if isinstance(v, float) else str(v)
+
+
+@contextmanager
+def progress_stages(enabled: bool = True):
+    """`with progress_stages() as stage: work(a=stage("first"), b=stage("second"))`: report(done, total)
+    callbacks for pieces of work done one after the other, a bar each. A stage's bar opens at its first
+    report (nothing is drawn for a stage that reports nothing) and closes when another stage reports
+    or the block ends."""
+    current = [None, None]  # desc, bar
+
+    def stage(desc: str):
+        def report(done: int, total: int) -> None:
+            if current[0] != desc:
+                if current[1] is not None:
+                    current[1].close()
+                current[:] = [desc, Progress(total=total, desc=desc, enabled=enabled)]
+            current[1].update(done - current[1].count)
+        return report
+
+    try:
+        yield stage
+    finally:
+        if current[1] is not None:
+            current[1].close()

@@ -25,6 +25,7 @@ from stg_runtime.atomic import atomic_output, remove_leftovers
 from stg_runtime.camera import Camera
 from stg_runtime.progress import Progress
 
+from .data.flow import initial_velocity
 from .data.points import initial_points, resolve_method
 from .losses import loss_fn
 from .metrics import psnr_of_mse
@@ -33,6 +34,10 @@ from .render import rasterize, resolve_backend
 from .strategy import DensityControl, GuidedSampling, Schedule, StepContext, Strategy, Thresholds
 
 CHECKPOINT_VERSION = 1
+
+
+#: TrainConfig.motion_init values.
+MOTION_INITS = ("flow", "zero")
 
 
 @dataclass
@@ -55,7 +60,9 @@ class TrainConfig:
     where it can run, else torch); guided: guided sampling of Gaussians in high-error patches
     (stg_train.strategy.guided, the paper's Sec. 4.4); frozen: time components
     switched off for ablations (params.COMPONENTS: "temporal_opacity", "motion", "rotation",
-    "time_features"; `static` freezes them all).
+    "time_features"; `static` freezes them all); motion_init: the initial motion, "zero" (the
+    reference's) or "flow" (each initial point's velocity from the optical flow of its frame in the
+    training cameras, stg_train.data.flow).
     """
 
     model: str = "full"
@@ -76,6 +83,7 @@ class TrainConfig:
     splatter: str = "auto"
     guided: bool = True
     frozen: tuple = ()
+    motion_init: str = "flow"
 
     def for_dataset(self, dataset) -> "TrainConfig":
         """These settings with the choices left open made: init "auto" (or None) -> default_method(dataset),
@@ -98,14 +106,18 @@ class Trainer:
 
     out_dir: where checkpoint.pt goes (None: no checkpoints). Build a fresh run with Trainer(dataset,
     config, out_dir) or continue one with Trainer.resume(dataset, checkpoint_path). init_progress(done, total):
-    called per frame while SfM computes the initial points (not when cached). initial: the
+    called per frame while SfM computes the initial points (not when cached); motion_progress(done,
+    total): per frame while the optical flow gives them their initial motion (motion_init "flow"). initial: the
     stg_train.data.points.InitialPoints of a fresh run (None when resumed). A dataset without near/far
     bounds gets those the initialisation derived (self.dataset is then a view of it with them; a resumed
     run takes them from the checkpoint), so guided sampling clips to them as on N3V.
     """
 
     def __init__(self, dataset, config: TrainConfig, out_dir=None, _state: dict | None = None,
-                 init_progress: Callable[[int, int], None] | None = None):
+                 init_progress: Callable[[int, int], None] | None = None,
+                 motion_progress: Callable[[int, int], None] | None = None):
+        if config.motion_init not in MOTION_INITS:
+            raise ValueError(f"motion_init must be one of {MOTION_INITS}, got {config.motion_init!r}")
         config = config.for_dataset(dataset)
         self.dataset, self.config = dataset, config
         self.out_dir = None if out_dir is None else Path(out_dir)
@@ -130,6 +142,10 @@ class Trainer:
                 self.dataset = dataset.with_bounds(self.initial.bounds, self.initial.bounds_source)
             self.params = STGParams.from_points(xyz, rgb, t_center, config.model, config.static,
                                                 self.device, seed=config.seed, frozen=config.frozen)
+            if config.motion_init == "flow" and self.params.trainable("motion"):
+                velocity = initial_velocity(self.dataset, xyz, rgb, t_center, progress=motion_progress)
+                with torch.no_grad():
+                    self.params.raw["motion"][:, 0:3] = torch.as_tensor(velocity, device=self.device)
             self.box = np.stack([xyz.min(0), xyz.max(0)])
             self.step = 0
         else:

@@ -118,6 +118,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "(N3V), else the COLMAP model's points, else the SfM points (SfM then runs for them)")
     p.add_argument("--init-every", type=positive_int, default=1, metavar="N",
                    help="run SfM on every N-th frame (default %(default)s: every frame, as the paper)")
+    p.add_argument("--motion-init", choices=["flow", "zero"], default=d.motion_init,
+                   help="initial motion of the Gaussians: flow = each initial point's velocity triangulated from "
+                        "the optical flow of its frame in the training cameras that see it (points whose flow is "
+                        "under half a pixel stay at rest); zero = at rest, as the reference implementation "
+                        "(default %(default)s; docs/dynamic.md compares them)")
     p.add_argument("--seed", type=int, default=d.seed, help="random seed (default %(default)s)")
     add_dataset_options(p, depth_bounds=True)
     p.add_argument("--threads", type=positive_int, default=None, metavar="N",
@@ -146,6 +151,7 @@ def _config(args, splatter: str) -> TrainConfig:
     base.model, base.batch, base.seed, base.device = args.model, args.batch, args.seed, args.device
     base.checkpoint_every, base.splatter = args.checkpoint_every, splatter
     base.guided, base.init_every, base.init = not args.no_guided, args.init_every, args.init
+    base.motion_init = args.motion_init
     if args.iterations:
         base.iterations = args.iterations
     if args.points:
