@@ -25,7 +25,7 @@ import numpy as np
 from stg_runtime.atomic import remove_leftovers, write_atomic
 from stg_runtime.camera import orbit
 from stg_runtime.player import Player
-from stg_runtime.progress import progress_callback
+from stg_runtime.progress import progress_stages
 
 from .convert.merge import merge_files
 from .data import DataError, load_dataset
@@ -42,10 +42,11 @@ DEMO_SCENE = {"cameras": 12, "frames": 30, "fps": 30.0, "width": 160, "height": 
 DEMO_TRAINING = {"iterations": 1500, "num_points": 8000}
 
 
-def ensure_demo_scene(data, announce: bool = False, **sizes) -> Path:
+def ensure_demo_scene(data, announce: bool = False, supersample: int = 1, **sizes) -> Path:
     """The demo's synthetic scene, in the N3V layout, at `data`: written unless it is there already.
-    sizes: any of DEMO_SCENE's cameras, frames, width, height to change; announce: say so on stderr
-    before writing."""
+    sizes: any of DEMO_SCENE's cameras, frames, width, height to change; supersample: rays per pixel
+    side (stg_train.synthetic.write_n3v; 1, the demo's, leaves the ground truth aliased where textures
+    are finer than a pixel); announce: say so on stderr before writing."""
     d = {**DEMO_SCENE, **sizes}
     data = Path(data)
     if not (data / "poses_bounds.npy").exists():
@@ -53,18 +54,21 @@ def ensure_demo_scene(data, announce: bool = False, **sizes) -> Path:
             print(f"writing the synthetic scene ({d['cameras']} cameras x {d['frames']} frames, "
                   f"{d['width']}x{d['height']}) to {data}", file=sys.stderr)
         write_n3v(data, SyntheticScene(seed=0, duration=d["frames"] / d["fps"]), num_cameras=d["cameras"],
-                  num_frames=d["frames"], fps=d["fps"], width=d["width"], height=d["height"])
+                  num_frames=d["frames"], fps=d["fps"], width=d["width"], height=d["height"],
+                  supersample=supersample)
     return data
 
 
 def new_trainer(dataset, config: TrainConfig, out: Path, quiet: bool = False) -> Trainer:
-    """Trainer(dataset, config, out) with a progress bar while SfM computes the initial points; its
+    """Trainer(dataset, config, out) with progress bars while SfM computes the initial points and while
+    the optical flow gives them their motion; its
     warnings (SfM found too few points) are printed as "stg-train: warning: ..." lines, and the initial
     points' split, coverage and depth bounds as "stg-train: ..." lines (unless quiet)."""
-    with progress_callback("structure from motion", enabled=not quiet) as report:
+    with progress_stages(enabled=not quiet) as stage:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            trainer = Trainer(dataset, config, out_dir=out, init_progress=report)
+            trainer = Trainer(dataset, config, out_dir=out, init_progress=stage("structure from motion"),
+                              motion_progress=stage("initial motion (optical flow)"))
     for w in caught:
         print(f"stg-train: warning: {w.message}", file=sys.stderr)
     if not quiet:
