@@ -9,13 +9,17 @@ import onnxruntime as ort
 from .camera import Camera
 from .onnx_mlp import read_mlp
 
+#: Clamp bounds as float32 scalars: np.clip of a float32 image with Python floats takes several times
+#: as long (1.2 ms against 0.16 ms for a 640x360 rgb image, numpy 2.4).
+_ZERO, _ONE = np.float32(0.0), np.float32(1.0)
+
 
 def activate(x: np.ndarray, activation: str) -> np.ndarray:
     """The decoder's output activation, then clamped to [0, 1] for display."""
     if activation == "sigmoid":
         with np.errstate(over="ignore"):  # exp(-x) = inf for very negative x: sigmoid 0, as it should
             x = 1.0 / (1.0 + np.exp(-x))
-    return np.clip(x, 0.0, 1.0, out=x)
+    return np.clip(x, _ZERO, _ONE, out=x)
 
 
 class OnnxDecoder:
@@ -75,4 +79,4 @@ class OnnxDecoder:
 
 def lite_colour(features: np.ndarray) -> np.ndarray:
     """Lite models: rgb = clamp(F[..., 0:3], 0, 1)."""
-    return np.clip(features[..., :3], 0.0, 1.0)
+    return np.clip(features[..., :3], _ZERO, _ONE)

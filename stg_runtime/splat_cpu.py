@@ -4,8 +4,7 @@
         -> features (H, W, C), alpha (H, W), depth (H, W), all float32
 
 Same semantics as stg_runtime.spec.rasterize_oracle (the float64 transcription of the spec); the
-results agree with it to float32 rounding. The pipeline, one numba kernel per step (two parallel
-regions per frame: a region costs milliseconds when the other core is busy):
+results agree with it to float32 rounding. The pipeline, one numba kernel per step:
 
 1. _project (parallel over Gaussians): stg_runtime.projection.footprint (shared with the GPU
    splatter, stg_runtime.cuda.splat), in float64: camera-space depth, the EWA 2D covariance's conic,
@@ -15,7 +14,8 @@ regions per frame: a region costs milliseconds when the other core is busy):
    get no tiles. Each kept Gaussian gets a 64-byte record (see _PACKED): all the compositor reads
    about it.
 2. sort_by_depth: the kept Gaussians in (depth, index) order (radix sort; exactly the float64 order).
-3. bin_tiles: every Gaussian is listed in each tile its rectangle meets; lists come out in depth order.
+3. bin_tiles (parallel over pieces of the depth order): every Gaussian is listed in each tile its
+   rectangle meets; lists come out in depth order.
 4. _composite (parallel over tiles, taken longest list first from an atomic counter): a tile's state
    (transmittance, sum w z, sum w f per channel) lives in planes of one array, each plane laid out in
    strips 8 pixels wide, row-major within a strip. Per Gaussian and strip, the pixels from the first
@@ -254,35 +254,55 @@ def sort_by_depth(tiles, depth):
     return src_i
 
 
-@numba.njit(cache=True)
 def bin_tiles(order, tiles, tiles_x, tiles_y):
     """Per-tile lists of the kept Gaussians, in depth order: order (K,) their ids in (depth, index)
     order, tiles (M, 4) as made by _project.
 
     Returns tile_start (tiles + 1,) int64, tile_ids (entries,) int32 (tile t lists the Gaussian ids
     tile_ids[tile_start[t]:tile_start[t + 1]], front to back), and the tiles ordered by decreasing
-    list length (the compositor's work order). Serial: a parallel region costs more than this
-    whenever the other core is busy."""
+    list length (the compositor's work order). `order` is cut into one piece per thread: each piece
+    counts its entries per tile, then writes them after those of the pieces before it (in depth order)
+    within each tile's list, so the lists are the same whatever the number of threads."""
+    pieces = max(1, min(numba.get_num_threads(), order.shape[0] // 4096))
+    return _bin_tiles(order, tiles, tiles_x, tiles_y, pieces)
+
+
+@numba.njit(parallel=True, cache=True)
+def _bin_tiles(order, tiles, tiles_x, tiles_y, pieces):
+    """bin_tiles with `order` cut into `pieces` pieces."""
     n = order.shape[0]
     n_tiles = tiles_x * tiles_y
-    tile_start = np.zeros(n_tiles + 1, np.int64)
-    for g in range(tiles.shape[0]):  # counts do not depend on the order: read memory in order
-        for ty in range(tiles[g, 2], tiles[g, 3] + 1):
-            for tx in range(tiles[g, 0], tiles[g, 1] + 1):
-                tile_start[ty * tiles_x + tx + 1] += 1
-    for t in range(n_tiles):
-        tile_start[t + 1] += tile_start[t]
-    cursor = tile_start[:-1].copy()
-    tile_ids = np.empty(tile_start[n_tiles], np.int32)
-    for i in range(n):
-        if i + 16 < n:
-            _prefetch(tiles, order[i + 16] * 4)
-        g = order[i]
-        for ty in range(tiles[g, 2], tiles[g, 3] + 1):
-            for tx in range(tiles[g, 0], tiles[g, 1] + 1):
-                t = ty * tiles_x + tx
-                tile_ids[cursor[t]] = g
-                cursor[t] += 1
+    size = -(-n // pieces)
+    counts = np.zeros((pieces, n_tiles), np.int64)
+    for c in numba.prange(pieces):
+        for i in range(c * size, min(n, (c + 1) * size)):
+            if i + 16 < n:
+                _prefetch(tiles, order[i + 16] * 4)
+            g = order[i]
+            for ty in range(tiles[g, 2], tiles[g, 3] + 1):
+                for tx in range(tiles[g, 0], tiles[g, 1] + 1):
+                    counts[c, ty * tiles_x + tx] += 1
+    tile_start = np.empty(n_tiles + 1, np.int64)
+    total = 0
+    for t in range(n_tiles):  # each piece's cursor: where its entries of tile t begin
+        tile_start[t] = total
+        for c in range(pieces):
+            cnt = counts[c, t]
+            counts[c, t] = total
+            total += cnt
+    tile_start[n_tiles] = total
+    tile_ids = np.empty(total, np.int32)
+    for c in numba.prange(pieces):
+        cursor = counts[c]
+        for i in range(c * size, min(n, (c + 1) * size)):
+            if i + 16 < n:
+                _prefetch(tiles, order[i + 16] * 4)
+            g = order[i]
+            for ty in range(tiles[g, 2], tiles[g, 3] + 1):
+                for tx in range(tiles[g, 0], tiles[g, 1] + 1):
+                    t = ty * tiles_x + tx
+                    tile_ids[cursor[t]] = g
+                    cursor[t] += 1
     tile_order = np.argsort(tile_start[:-1] - tile_start[1:], kind="mergesort")
     return tile_start, tile_ids, tile_order
 

@@ -234,3 +234,29 @@ def test_projection_jacobian_clamp():
     cov = J @ (s * s * np.eye(3)) @ J.T + 0.3 * np.eye(2)
     np.testing.assert_allclose(p.cov2d[0], [cov[0, 0], cov[0, 1], cov[1, 1]], rtol=1e-12)
     assert p.mean2d[0, 0] == pytest.approx(FX * x / z + camera.cx)  # the mean is not clamped
+
+
+def test_tile_lists_do_not_depend_on_how_the_depth_order_is_cut():
+    """bin_tiles cuts the depth order into one piece per thread; the lists must come out the same (each
+    tile's ids front to back) whatever the number of pieces."""
+    from stg_runtime.splat_cpu import _bin_tiles, sort_by_depth
+
+    rng = np.random.default_rng(5)
+    m, tiles_x, tiles_y = 20000, 9, 7
+    x0, y0 = rng.integers(0, tiles_x, m), rng.integers(0, tiles_y, m)
+    tiles = np.stack([x0, np.minimum(x0 + rng.integers(0, 3, m), tiles_x - 1),
+                      y0, np.minimum(y0 + rng.integers(0, 3, m), tiles_y - 1)], 1).astype(np.int32)
+    tiles[rng.random(m) < 0.1, 0] = tiles_x  # culled: an empty range
+    depth = rng.uniform(1, 5, m)
+    order = sort_by_depth(tiles, depth)
+    start, ids, work = _bin_tiles(order, tiles, tiles_x, tiles_y, 1)
+    kept = tiles[:, 0] <= tiles[:, 1]
+    for t in range(tiles_x * tiles_y):  # the single-piece lists against a direct construction
+        tx, ty = t % tiles_x, t // tiles_x
+        inside = kept & (tiles[:, 0] <= tx) & (tx <= tiles[:, 1]) & (tiles[:, 2] <= ty) & (ty <= tiles[:, 3])
+        expected = order[inside[order]]
+        np.testing.assert_array_equal(ids[start[t]:start[t + 1]], expected)
+    for pieces in (2, 3, 7):
+        other = _bin_tiles(order, tiles, tiles_x, tiles_y, pieces)
+        for a, b in zip((start, ids, work), other):
+            np.testing.assert_array_equal(a, b)
