@@ -94,7 +94,7 @@ def give_true_motion(trainer: Trainer, scene: SyntheticScene, duration: float, r
     """Diagnostic: the initial Gaussians within `radius` of the moving sphere's centre at their temporal
     centre c get its true trajectory as their motion: the least-squares cubic a dt + b dt^2 + c dt^3
     through its centre's offsets at dt in [-0.5, 0.5] (normalised time; `duration` seconds per unit).
-    What the dynamic pixels gain then bounds what learning the sphere's motion can gain. Returns how
+    What the dynamic pixels gain then shows what learning the sphere's motion can be worth. Returns how
     many Gaussians were given it."""
     raw = trainer.params.raw
     centres = raw["t_center"].detach().reshape(-1).cpu().numpy()
@@ -156,7 +156,9 @@ def main() -> None:
     if unknown:
         ap.error(f"unknown variant(s) {unknown}; choose from {list(VARIANTS)}")
     torch.set_num_threads(args.threads)
-    size = f"{args.cameras}x{args.frames}-{args.width}x{args.height}" + (f"-ss{args.supersample}" if args.supersample > 1 else "")
+    size = f"{args.cameras}x{args.frames}-{args.width}x{args.height}"
+    if args.supersample > 1:
+        size += f"-ss{args.supersample}"
     data = Path(args.data or os.path.join(tempfile.gettempdir(), f"stg-ablation-scene-{size}"))
     ensure_demo_scene(data, cameras=args.cameras, frames=args.frames, width=args.width, height=args.height,
                       supersample=args.supersample)

@@ -25,7 +25,7 @@ import numpy as np
 
 from stg_runtime.camera import Camera
 
-from .visibility import sees
+from .visibility import pixel_hits
 
 #: Step (world units) of the central differences of the projection's Jacobian, relative to depth.
 _JACOBIAN_STEP = 1e-4
@@ -109,13 +109,9 @@ def initial_velocity(dataset, xyz: np.ndarray, rgb: np.ndarray, t_center: np.nda
         j0 = min(j, n_frames - 2)  # the last frame takes the flow that ends there
         jac, flow, used = [], [], []
         for ci, cam in zip(dataset.train_cameras, cams):
-            uv, _, visible = sees(cam, xyz[points])
-            first = dataset.image(ci, j0)
-            seen = dataset.image(ci, j)
-            px = np.clip(np.floor(uv).astype(np.int64), 0, [cam.width - 1, cam.height - 1])
-            colour = seen[px[:, 1], px[:, 0]]
-            same = np.abs(colour - rgb[points]).max(-1) <= colour_tol
-            f = frame_flow(first, dataset.image(ci, j0 + 1))[px[:, 1], px[:, 0]]
+            u, v, visible = pixel_hits(cam, xyz[points])
+            same = np.abs(dataset.image(ci, j)[v, u] - rgb[points]).max(-1) <= colour_tol
+            f = frame_flow(dataset.image(ci, j0), dataset.image(ci, j0 + 1))[v, u]
             jac.append(projection_jacobian(cam, xyz[points]))
             flow.append(f)
             used.append(visible & same)
