@@ -267,6 +267,23 @@ def bin_tiles(order, tiles, tiles_x, tiles_y):
     return _bin_tiles(order, tiles, tiles_x, tiles_y, pieces)
 
 
+@numba.njit(inline="always")
+def _list_piece(order, tiles, tiles_x, lo, hi, cursor, tile_ids, write):
+    """Walk the ids order[lo:hi] and, for each tile t their rectangles meet, advance cursor[t]; with
+    `write`, first store the id at tile_ids[cursor[t]] (without, the walk only counts)."""
+    n = order.shape[0]
+    for i in range(lo, hi):
+        if i + 16 < n:
+            _prefetch(tiles, order[i + 16] * 4)
+        g = order[i]
+        for ty in range(tiles[g, 2], tiles[g, 3] + 1):
+            for tx in range(tiles[g, 0], tiles[g, 1] + 1):
+                t = ty * tiles_x + tx
+                if write:
+                    tile_ids[cursor[t]] = g
+                cursor[t] += 1
+
+
 @numba.njit(parallel=True, cache=True)
 def _bin_tiles(order, tiles, tiles_x, tiles_y, pieces):
     """bin_tiles with `order` cut into `pieces` pieces."""
@@ -274,14 +291,9 @@ def _bin_tiles(order, tiles, tiles_x, tiles_y, pieces):
     n_tiles = tiles_x * tiles_y
     size = -(-n // pieces)
     counts = np.zeros((pieces, n_tiles), np.int64)
+    no_ids = np.empty(0, np.int32)
     for c in numba.prange(pieces):
-        for i in range(c * size, min(n, (c + 1) * size)):
-            if i + 16 < n:
-                _prefetch(tiles, order[i + 16] * 4)
-            g = order[i]
-            for ty in range(tiles[g, 2], tiles[g, 3] + 1):
-                for tx in range(tiles[g, 0], tiles[g, 1] + 1):
-                    counts[c, ty * tiles_x + tx] += 1
+        _list_piece(order, tiles, tiles_x, c * size, min(n, (c + 1) * size), counts[c], no_ids, False)
     tile_start = np.empty(n_tiles + 1, np.int64)
     total = 0
     for t in range(n_tiles):  # each piece's cursor: where its entries of tile t begin
@@ -293,16 +305,7 @@ def _bin_tiles(order, tiles, tiles_x, tiles_y, pieces):
     tile_start[n_tiles] = total
     tile_ids = np.empty(total, np.int32)
     for c in numba.prange(pieces):
-        cursor = counts[c]
-        for i in range(c * size, min(n, (c + 1) * size)):
-            if i + 16 < n:
-                _prefetch(tiles, order[i + 16] * 4)
-            g = order[i]
-            for ty in range(tiles[g, 2], tiles[g, 3] + 1):
-                for tx in range(tiles[g, 0], tiles[g, 1] + 1):
-                    t = ty * tiles_x + tx
-                    tile_ids[cursor[t]] = g
-                    cursor[t] += 1
+        _list_piece(order, tiles, tiles_x, c * size, min(n, (c + 1) * size), counts[c], tile_ids, True)
     tile_order = np.argsort(tile_start[:-1] - tile_start[1:], kind="mergesort")
     return tile_start, tile_ids, tile_order
 
