@@ -76,20 +76,10 @@ class Progress:
 def progress_callback(desc: str, enabled: bool = True):
     """`with progress_callback("decode frames") as report: work(progress=report)`: a report(done, total)
     callback for work that reports its own progress. The bar opens at the first report (nothing is drawn
-    when none comes, e.g. when the work was cached) and closes when the block ends."""
-    bar = None
-
-    def report(done: int, total: int) -> None:
-        nonlocal bar
-        if bar is None:
-            bar = Progress(total=total, desc=desc, enabled=enabled)
-        bar.update(done - bar.count)
-
-    try:
-        yield report
-    finally:
-        if bar is not None:
-            bar.close()
+    when none comes, e.g. when the work was cached) and closes when the block ends: progress_stages
+    with one stage."""
+    with progress_stages(enabled) as stage:
+        yield stage(desc)
 
 
 def _fmt(v) -> str:

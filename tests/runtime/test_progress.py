@@ -30,3 +30,15 @@ def test_disabled_stages_draw_nothing(monkeypatch):
         stage("a")(1, 1)
         stage("b")(1, 1)
     assert stream.getvalue() == ""
+
+
+def test_progress_callback_is_one_stage(monkeypatch):
+    stream = io.StringIO()
+    monkeypatch.setattr(progress.sys, "stderr", stream)
+    with progress.progress_callback("decode frames") as report:
+        report(1, 2)
+        report(2, 2)
+    with progress.progress_callback("cached"):
+        pass  # no report: no bar
+    lines = stream.getvalue().splitlines()
+    assert lines and all(line.startswith("decode frames") for line in lines) and "2/2" in lines[-1]
