@@ -6,7 +6,7 @@ import pytest
 from stg_runtime.camera import Camera
 from stg_train.data.dataset import Dataset
 from stg_train.data.flow import initial_velocity, projection_jacobian, triangulate_displacement
-from stg_train.synthetic import OBJECT_NAMES, SyntheticScene, _to_uint8
+from stg_train.synthetic import OBJECT_NAMES, SyntheticScene, novel_view_dataset
 
 W, H = 96, 72
 
@@ -57,13 +57,12 @@ def test_triangulation_recovers_a_displacement_from_exact_pixel_motion():
     np.testing.assert_allclose(d[1:], true[1:], atol=2e-4)  # linearisation error only
 
 
-def _scene_dataset(scene, cams, frames, supersample=2, bounds=None):
-    """A Dataset of `scene` seen by `cams` at frames k / 30 s (k in `frames` order); bounds: (near, far)
-    of every camera, or None."""
-    images = np.stack([np.stack([_to_uint8(scene.render(c, k / 30.0, supersample=supersample)) for k in frames])
-                       for c in cams])
+def _scene_dataset(scene, cams, num_frames, supersample=2, bounds=None):
+    """A Dataset of `scene` seen by `cams` at frames k / 30 s, k < num_frames, all of them training
+    cameras (novel_view_dataset's frames); bounds: (near, far) of every camera, or None."""
+    rendered = novel_view_dataset(scene, num_frames, 30.0, cameras=cams, supersample=supersample)
     near_far = None if bounds is None else np.tile(bounds, (len(cams), 1))
-    return Dataset(cams, images, 30.0, test_cameras=[], bounds=near_far, bounds_source="user")
+    return Dataset(cams, rendered.frames, 30.0, test_cameras=[], bounds=near_far, bounds_source="user")
 
 
 def _surface_points(scene, cam, t, name):
@@ -79,7 +78,7 @@ def _surface_points(scene, cam, t, name):
 def test_velocities_on_the_moving_sphere_and_rest_on_the_room():
     scene = SyntheticScene(seed=0, duration=1.0, blur=0.0)
     cams = _rig(8)
-    ds = _scene_dataset(scene, cams, range(3))
+    ds = _scene_dataset(scene, cams, 3)
     t = 1 / 30.0  # frame 1 of the clip: normalised time 1/3 of this 3-frame dataset
     moving, moving_rgb = _surface_points(scene, cams[0], t, "moving_sphere")
     room, room_rgb = _surface_points(scene, cams[0], t, "room")
@@ -102,7 +101,7 @@ def test_trainer_starts_the_gaussians_with_the_flow_velocities_or_at_rest():
     from stg_train.trainer import Trainer, TrainConfig
     scene = SyntheticScene(seed=0, duration=1.0)
     cams = _rig(5, 64, 48)
-    ds = _scene_dataset(scene, cams, range(3), supersample=1, bounds=(0.5, 9.0))
+    ds = _scene_dataset(scene, cams, 3, supersample=1, bounds=(0.5, 9.0))
     config = TrainConfig(iterations=10, num_points=600, init="volume", depth_candidates=8)
     moving = Trainer(ds, config)
     initial = moving.initial
