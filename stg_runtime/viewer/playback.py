@@ -13,14 +13,16 @@ import numpy as np
 
 class Playback:
     """Current time `time` in [first, last] seconds (frame k of the model at k / fps). `advance(dt)`
-    moves it by dt * speed while playing: past `last` it wraps to `first` when `loop` is on, else it
-    stops at `last` and pauses. Thread-safe."""
+    moves it by dt * speed while playing: past `last` it stops there and pauses when `loop` is off;
+    with `loop` on, the last frame is shown for 1 / fps like the others and then the time wraps to
+    `first`, however small the steps it is advanced by. Thread-safe."""
 
     def __init__(self, first: float, last: float, fps: float):
         if not last >= first:
             raise ValueError(f"playback range [{first}, {last}] s is empty")
         self.first, self.last, self.fps = float(first), float(last), float(fps)
         self.time = self.first
+        self._position = self.first  # self.time, or beyond `last` while the last frame is shown
         self.playing = False
         self.loop = True
         self.speed = 1.0
@@ -41,7 +43,7 @@ class Playback:
     def seek(self, t: float) -> float:
         """Set the time (clamped to the range); returns it."""
         with self._lock:
-            self.time = min(max(float(t), self.first), self.last)
+            self.time = self._position = min(max(float(t), self.first), self.last)
             return self.time
 
     def tick(self, now: float | None = None) -> float:
@@ -58,14 +60,12 @@ class Playback:
         with self._lock:
             if not self.playing:
                 return self.time
-            t = self.time + seconds * self.speed
+            t = self._position + seconds * self.speed
             span = self.last - self.first
-            if t > self.last:
-                if self.loop and span > 0:
-                    period = span + 1.0 / self.fps  # the last frame is shown for 1 / fps too
-                    t = self.first + (t - self.last - 1.0 / self.fps + 1e-9) % period
-                    t = min(t, self.last)
-                else:
-                    t, self.playing = self.last, False
-            self.time = t
-            return t
+            if t > self.last and not (self.loop and span > 0):
+                t, self.playing = self.last, False
+            elif t >= self.last + 1.0 / self.fps - 1e-9:  # the last frame has been shown for 1 / fps
+                t = self.first + (t - self.first + 1e-9) % (span + 1.0 / self.fps)
+            self._position = t
+            self.time = min(t, self.last)
+            return self.time

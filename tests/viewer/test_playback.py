@@ -49,3 +49,14 @@ def test_tick_advances_by_wall_clock_time():
     assert p.tick(now=105.0) == pytest.approx(0.35)
     p.playing = True
     assert p.tick(now=105.1) == pytest.approx(0.45)  # the pause is not counted
+
+
+def test_loop_wraps_when_advanced_in_steps_shorter_than_a_frame():
+    # the viewer's clock and every browser's stream tick it, often far more often than the frame rate
+    p = Playback(0.0, 0.9, fps=10)
+    p.playing = True
+    p.seek(0.85)
+    times = [p.advance(0.01) for _ in range(30)]
+    assert max(times) == pytest.approx(0.9)  # the last frame is shown ...
+    assert sum(t == pytest.approx(0.9) for t in times) == 10  # ... for 1 / fps = 0.1 s, in 0.01 s steps
+    assert times[-1] == pytest.approx(0.15, abs=1e-6) and p.playing  # then frame 0 again, still playing
