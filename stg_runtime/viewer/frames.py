@@ -2,7 +2,8 @@
 
 `render_image` is what a browser is sent: the Player's render for that camera and time, as 8-bit
 rgb. `ClientStream` renders for one connected browser whenever its camera, the time, the mode or the
-model changes: at a preview size while the camera moves, at full size once it rests. It reads a
+model changes: at a preview size while the camera moves, at full size once it rests. `RenderThread`
+runs the renders of every browser, one at a time, on one thread. It reads a
 client the way viser presents one (`client.camera.wxyz / position / fov / image_width / image_height`,
 `client.scene.set_background_image`), without importing viser.
 """
@@ -10,6 +11,7 @@ from __future__ import annotations
 
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -77,7 +79,7 @@ class ViewSettings:
 @dataclass
 class FrameStats:
     """The last frame sent to a browser: its camera, time, mode, whether a preview, render seconds
-    (Player only) and the wall-clock time it was sent; `sent` counts frames, `render_total` adds up
+    (the Player's render, and any wait for other browsers' renders) and the wall-clock time it was sent; `sent` counts frames, `render_total` adds up
     their render seconds."""
 
     camera: Camera | None = None
@@ -106,18 +108,38 @@ def client_camera(client) -> tuple[tuple, Camera] | None:
     return key, camera_from_viser(wxyz, position, fov, width, height)
 
 
+class RenderThread:
+    """Runs functions (renders) one at a time on one long-lived thread: `run(fn, *args)` returns
+    fn(*args), or raises what it raised.
+
+    Why one thread: numba's OpenMP threading layer keeps a pool of worker threads for every thread
+    that starts parallel work. With several pools alive it counts more threads than cores, and its
+    workers then sleep between parallel loops instead of spinning, which makes every render several
+    times slower (docs/viewer.md). Rendering for every browser on one thread keeps one pool."""
+
+    def __init__(self):
+        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="stg-view render")
+
+    def run(self, fn, *args):
+        return self._executor.submit(fn, *args).result()
+
+    def close(self) -> None:
+        """Stop the thread once the render in progress is done; later calls to run raise RuntimeError."""
+        self._executor.shutdown(wait=False, cancel_futures=True)
+
+
 class ClientStream:
     """Renders for one browser. `render_once()` renders and sends one frame when anything changed since
     the last (camera, time, mode, model), or the full-size frame once the camera rests after a preview;
     it returns whether it sent one. `run()` loops over render_once until `stop()`.
 
     source(): the current (Player, model version, time in seconds); settings: a ViewSettings;
-    render_lock: held while rendering (one render at a time in the process: numba's thread pool and
-    onnxruntime are shared)."""
+    renderer: the RenderThread that renders (shared by the streams of a viewer), or None to render on
+    the calling thread."""
 
-    def __init__(self, client, source, settings: ViewSettings, render_lock: threading.Lock | None = None):
+    def __init__(self, client, source, settings: ViewSettings, renderer: RenderThread | None = None):
         self.client, self.source, self.settings = client, source, settings
-        self.render_lock = render_lock or threading.Lock()
+        self.render = renderer.run if renderer is not None else (lambda fn, *args: fn(*args))
         self.stats = FrameStats()
         self._last_key = None
         self._camera_key = None
@@ -149,8 +171,7 @@ class ClientStream:
         size = self.settings.preview_pixels if preview else self.settings.max_pixels
         camera = scaled(camera, size)
         start = time.perf_counter()
-        with self.render_lock:
-            image = render_image(player, camera, t, self.settings.mode)
+        image = self.render(render_image, player, camera, t, self.settings.mode)
         seconds = time.perf_counter() - start
         if self._stopped.is_set():  # the browser left (or the server stops) while this frame rendered
             return False
@@ -172,6 +193,8 @@ class ClientStream:
             try:
                 sent = self.render_once()
             except Exception as e:  # noqa: BLE001 - a failed frame must not end the stream
+                if self._stopped.is_set():  # the viewer closed (and its RenderThread) under this frame
+                    break
                 self._last_key = None
                 sent = False
                 if on_error is not None:

@@ -23,7 +23,7 @@ from ..model import Model
 from ..player import Player
 from ..video import encode_png
 from .camera import scaled, viser_pose
-from .frames import ClientStream, ViewSettings, client_camera, modes_for, render_image
+from .frames import ClientStream, RenderThread, ViewSettings, client_camera, modes_for, render_image
 from .keyframes import interpolate_path
 from .playback import Playback
 
@@ -83,7 +83,7 @@ class Viewer:
         self.settings = settings or ViewSettings()
         self.version = 0
         self.playback = Playback.of(self.player)
-        self.render_lock = threading.Lock()
+        self.renderer = RenderThread()
         self.keyframes: list[Camera] = []
         self.streams: dict[int, ClientStream] = {}
         self._errors: set[str] = set()
@@ -134,7 +134,7 @@ class Viewer:
 
     def connect(self, client) -> None:
         """Stream pictures to a browser (viser calls it for each one that connects)."""
-        stream = ClientStream(client, self._source, self.settings, self.render_lock)
+        stream = ClientStream(client, self._source, self.settings, self.renderer)
         self.streams[client.client_id] = stream
         threading.Thread(target=stream.run, kwargs={"on_error": self._report}, daemon=True,
                          name=f"stg-view client {client.client_id}").start()
@@ -200,8 +200,8 @@ class Viewer:
         if view is None:
             return None
         camera = scaled(view[1], self.settings.max_pixels)
-        with self.render_lock:
-            png = encode_png(render_image(self.player, camera, self.playback.time, self.settings.mode))
+        image = self.renderer.run(render_image, self.player, camera, self.playback.time, self.settings.mode)
+        png = encode_png(image)
         client.send_file_download(f"stg-view-{self.playback.frame:05d}.png", png, save_immediately=True)
         return png
 
@@ -317,6 +317,7 @@ class Viewer:
         self._closed.set()
         for stream in list(self.streams.values()):
             stream.stop()
+        self.renderer.close()
         self.server.stop()
 
 

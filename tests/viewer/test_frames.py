@@ -3,13 +3,16 @@ the browser's camera, converted with viser's conventions, at the current time.""
 from pathlib import Path
 from types import SimpleNamespace
 
+import threading
+
 import numpy as np
 import pytest
 
 from stg_runtime import Player
 from stg_runtime.video import to_uint8
+from stg_runtime.viewer import frames
 from stg_runtime.viewer.camera import camera_from_viser, viser_pose
-from stg_runtime.viewer.frames import ClientStream, ViewSettings, render_image
+from stg_runtime.viewer.frames import ClientStream, RenderThread, ViewSettings, render_image
 
 VECTORS = Path(__file__).resolve().parents[2] / "formats" / "vectors"
 
@@ -96,3 +99,31 @@ def test_render_modes(player):
     assert not np.array_equal(base, render_image(player, cam, t, "rgb"))
     with pytest.raises(ValueError, match="render mode"):
         render_image(player, cam, t, "normals")
+
+
+def test_streams_render_on_one_shared_thread(player, monkeypatch):
+    # numba keeps an OpenMP pool per thread that starts parallel work: every browser's renders run
+    # on the viewer's one RenderThread, whichever stream thread asks
+    cam0 = player.cameras[0]
+    renderer = RenderThread()
+    threads = []
+
+    def render(*args):
+        threads.append(threading.get_ident())
+        return render_image(*args)
+
+    monkeypatch.setattr(frames, "render_image", render)
+    clients = [FakeClient(viser_pose(cam0), cam0.width, cam0.height, client_id=i) for i in range(2)]
+    streams = [ClientStream(c, lambda: (player, 0, 0.1), ViewSettings(), renderer) for c in clients]
+    workers = [threading.Thread(target=s.render_once, kwargs={"now": 1.0}) for s in streams]
+    for w in workers:
+        w.start()
+    for w in workers:
+        w.join()
+    assert len(threads) == 2 and len(set(threads)) == 1
+    assert threads[0] not in {w.ident for w in workers} | {threading.get_ident()}
+    for c in clients:
+        np.testing.assert_array_equal(c.sent[-1][0], to_uint8(player.render(cam0, 0.1)))
+    renderer.close()
+    with pytest.raises(RuntimeError):
+        renderer.run(render_image, player, cam0, 0.1)
