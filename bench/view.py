@@ -1,14 +1,25 @@
 #!/usr/bin/env python
-"""Frames per second that reach a browser connected to stg-view, for lite and full models of N Gaussians.
+"""Frames per second that reach a client connected to stg-view, for lite and full models of N Gaussians.
 
     python bench/view.py [--gaussians 100000] [--size 640x360] [--seconds 10] [--device cpu|cuda]
+                         [--client socket,browser]
 
-For each model kind it starts a `stg_runtime.viewer.Viewer` on the model (stg_runtime.demo.random_model,
-the scene of bench/render.py), opens it in headless chromium (Debian's chromium and chromium-driver,
-through selenium) with a canvas of --size, presses play, and counts the pictures that reach the page
-(from viser's websocket worker) over --seconds, after --warmup seconds of playing (numba's JIT). It also
-prints the Player's mean render time per frame on the server. Needs the viewer extra and the browser:
-`python -m pip install -e ".[viewer,test]"`, `apt-get install -y chromium chromium-driver`.
+For each model kind and client it starts a `stg_runtime.viewer.Viewer` on the model
+(stg_runtime.demo.random_model, the scene of bench/render.py), connects the client with a view of
+--size, presses play, and counts the pictures that reach the client over --seconds, after --warmup
+seconds of playing (numba's JIT). It also prints the Player's mean render time per frame on the server.
+The clients:
+
+- browser: headless chromium (Debian's chromium and chromium-driver, through selenium) with a canvas of
+  --size; the pictures are counted as viser's websocket worker hands them to the page. The browser
+  draws every picture with software WebGL on the same cores as the server.
+- socket: a client that speaks viser's websocket protocol from Python (`SocketClient`): it reports the
+  browser's initial camera (training camera 0) and canvas size, receives the messages, and decodes every
+  picture's JPEG. It stands for a browser on another machine (the usual set-up: an SSH tunnel to the
+  server): it takes a few per cent of a core, so the server's cores are the Player's.
+
+Needs the viewer extra, and for the browser client the browser: `python -m pip install -e
+".[viewer,test]"`, `apt-get install -y chromium chromium-driver`.
 """
 from __future__ import annotations
 
@@ -16,9 +27,13 @@ import argparse
 import os
 import platform
 import shutil
+import threading
 import time
 
+import cv2
+import msgspec
 import numpy as np
+import zstandard
 
 from stg_runtime.demo import random_model
 from stg_runtime.viewer.frames import ViewSettings
@@ -72,29 +87,114 @@ def picture_times(driver) -> list[float]:
     return [ms / 1000 for ms in driver.execute_script("return window.__pictures.splice(0)")]
 
 
-def measure(kind: str, args, width: int, height: int) -> tuple[float, float, tuple]:
-    """(FPS at the browser, mean server render ms, picture size) for one model kind."""
+class BrowserClient:
+    """Headless chromium showing the viewer with a canvas of width x height."""
+
+    def __init__(self, viewer: Viewer, width: int, height: int):
+        self.driver = browser(width, height)
+        fit_window(self.driver, viewer.url, width, height)
+
+    def picture_times(self) -> list[float]:
+        return picture_times(self.driver)
+
+    def close(self) -> None:
+        self.driver.quit()
+
+
+class SocketClient:
+    """A client of viser's websocket protocol in Python: it sends the camera a browser reports (the
+    viewer's initial view with a canvas of width x height) and, on its own thread, receives the
+    messages (16 bytes of sizes, zstd-compressed msgpack, then 8-byte aligned binary buffers) and
+    decodes the JPEG of every picture (BackgroundImageMessage) as a browser must."""
+
+    def __init__(self, viewer: Viewer, width: int, height: int):
+        import viser
+        from viser import _messages
+        from websockets.sync.client import connect
+
+        self.socket = connect(f"ws://{viewer.host}:{viewer.port}", max_size=None,
+                              subprotocols=[f"viser-v{viser.__version__}"])
+        pose = viewer._pose(viewer.player.cameras[0])
+        camera = _messages.ViewerCameraMessage(
+            wxyz=tuple(pose.wxyz), position=tuple(pose.position), fov=pose.fov, near=0.01, far=1000.0,
+            image_height=height, image_width=width, look_at=tuple(pose.look_at),
+            up_direction=tuple(pose.up_direction))
+        self.socket.send(msgspec.msgpack.encode(camera.as_serializable_dict()))
+        self._times: list[float] = []
+        self._lock = threading.Lock()
+        self._thread = threading.Thread(target=self._receive, daemon=True)
+        self._thread.start()
+
+    def _receive(self) -> None:
+        from websockets.exceptions import ConnectionClosed
+
+        unzip = zstandard.ZstdDecompressor()
+        try:
+            for raw in self.socket:
+                for jpeg in pictures(raw, unzip):
+                    if cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR) is None:
+                        raise RuntimeError("a picture is not a JPEG")
+                    with self._lock:
+                        self._times.append(time.monotonic())
+        except ConnectionClosed:
+            pass
+
+    def picture_times(self) -> list[float]:
+        with self._lock:
+            times, self._times = self._times, []
+        return times
+
+    def close(self) -> None:
+        self.socket.close()
+        self._thread.join(timeout=5)
+
+
+def pictures(raw: bytes, unzip) -> list[bytes]:
+    """The encoded pictures (BackgroundImageMessage rgb_data) in one websocket message of viser's."""
+    size, packed = int.from_bytes(raw[:8], "little"), int.from_bytes(raw[8:16], "little")
+    batch = msgspec.msgpack.decode(unzip.decompress(raw[16:16 + packed], max_output_size=size))
+    buffers, offset = [], 16 + packed
+    for length in batch["binaryBufferLengths"]:
+        offset += -offset % 8
+        buffers.append(raw[offset:offset + length])
+        offset += length
+    found = []
+    for message in batch["messages"]:
+        data = message.get("rgb_data") if message["type"] == "BackgroundImageMessage" else None
+        if isinstance(data, dict):  # a binary buffer's placeholder
+            data = buffers[data["__binary_index"]]
+        if data:
+            found.append(bytes(data))
+    return found
+
+
+CLIENTS = {"browser": BrowserClient, "socket": SocketClient}
+
+
+def measure(kind: str, client_name: str, args, width: int, height: int) -> tuple[float, float, tuple]:
+    """(FPS at the client, mean server render ms, picture size) for one model kind and client."""
     model = random_model(args.gaussians, kind, width=width, height=height)
     viewer = Viewer(model, port=0, device=args.device,
                     settings=ViewSettings(max_pixels=width * height, preview_pixels=width * height))
-    driver = browser(width, height)
+    client = None
     try:
-        canvas = fit_window(driver, viewer.url, width, height)
+        client = CLIENTS[client_name](viewer, width, height)
         viewer.playback.playing = True
         time.sleep(args.warmup)
-        picture_times(driver)
+        client.picture_times()
         renders = []
         start = time.monotonic()
         while time.monotonic() - start < args.seconds:
             time.sleep(0.1)
             renders += [s.stats.render_seconds for s in viewer.streams.values()]
-        arrived = picture_times(driver)
+        arrived = client.picture_times()
         stats = next(iter(viewer.streams.values())).stats
-        size = (stats.camera.width, stats.camera.height) if stats.camera else canvas
+        size = (stats.camera.width, stats.camera.height) if stats.camera else (width, height)
         fps = (len(arrived) - 1) / (arrived[-1] - arrived[0]) if len(arrived) > 1 else 0.0
-        return fps, 1000 * float(np.mean(renders)), size
+        return fps, 1000 * float(np.mean(renders)) if renders else float("nan"), size
     finally:
-        driver.quit()
+        if client is not None:
+            client.close()
         viewer.close()
 
 
@@ -105,15 +205,23 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=10.0, help="seconds counted per model")
     ap.add_argument("--warmup", type=float, default=5.0, help="seconds of playing before counting")
     ap.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
+    ap.add_argument("--client", default="socket,browser",
+                    help="comma-separated clients: browser (headless chromium on this machine), socket "
+                         "(viser's protocol from Python, standing for a browser on another machine)")
     args = ap.parse_args()
+    clients = [c.strip() for c in args.client.split(",") if c.strip()]
+    unknown = sorted(set(clients) - set(CLIENTS))
+    if unknown or not clients:
+        ap.error(f"--client takes {', '.join(CLIENTS)}; got {args.client!r}")
     width, height = (int(v) for v in args.size.lower().split("x"))
     print(f"CPU: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, load average "
           f"{os.getloadavg()[0]:.2f}; device {args.device}")
     print(f"{args.gaussians} Gaussians, canvas {width}x{height}, playing, JPEG quality {ViewSettings().jpeg_quality}\n")
-    print(f"{'model':<8}{'picture':>10}{'FPS at the browser':>20}{'render ms':>11}")
-    for kind in ("lite", "full"):
-        fps, render_ms, size = measure(kind, args, width, height)
-        print(f"{kind:<8}{size[0]:>5}x{size[1]:<4}{fps:>20.1f}{render_ms:>11.1f}")
+    print(f"{'model':<8}{'client':<9}{'picture':>10}{'FPS at the client':>19}{'render ms':>11}")
+    for client in clients:
+        for kind in ("lite", "full"):
+            fps, render_ms, size = measure(kind, client, args, width, height)
+            print(f"{kind:<8}{client:<9}{size[0]:>5}x{size[1]:<4}{fps:>19.1f}{render_ms:>11.1f}", flush=True)
 
 
 if __name__ == "__main__":

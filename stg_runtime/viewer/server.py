@@ -318,6 +318,7 @@ class Viewer:
         for stream in list(self.streams.values()):
             stream.stop()
         self.renderer.close()
+        self._clock.join(timeout=5)  # it must not update the panel of a stopped server
         self.server.stop()
 
 
