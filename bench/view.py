@@ -2,12 +2,14 @@
 """Frames per second that reach a client connected to stg-view, for lite and full models of N Gaussians.
 
     python bench/view.py [--gaussians 100000] [--size 640x360] [--seconds 10] [--device cpu|cuda]
-                         [--client socket,browser]
+                         [--client socket,browser] [--clients 1]
 
 For each model kind and client it starts a `stg_runtime.viewer.Viewer` on the model
 (stg_runtime.demo.random_model, the scene of bench/render.py), connects the client with a view of
 --size, presses play, and counts the pictures that reach the client over --seconds, after --warmup
-seconds of playing (numba's JIT). It also prints the Player's mean render time per frame on the server.
+seconds of playing (numba's JIT); with --clients N, N clients at once (their FPS added up). It also
+prints the Player's mean render time per frame on the server (with several clients, including the wait
+for the others' renders).
 The clients:
 
 - browser: headless chromium (Debian's chromium and chromium-driver, through selenium) with a canvas of
@@ -171,29 +173,36 @@ def pictures(raw: bytes, unzip) -> list[bytes]:
 CLIENTS = {"browser": BrowserClient, "socket": SocketClient}
 
 
+def rate(times: list[float]) -> float:
+    """Pictures per second over arrival times (seconds)."""
+    return (len(times) - 1) / (times[-1] - times[0]) if len(times) > 1 else 0.0
+
+
 def measure(kind: str, client_name: str, args, width: int, height: int) -> tuple[float, float, tuple]:
-    """(FPS at the client, mean server render ms, picture size) for one model kind and client."""
+    """(FPS at the clients, all --clients together; mean server render ms; picture size) for one model
+    kind and client."""
     model = random_model(args.gaussians, kind, width=width, height=height)
     viewer = Viewer(model, port=0, device=args.device,
                     settings=ViewSettings(max_pixels=width * height, preview_pixels=width * height))
-    client = None
+    clients = []
     try:
-        client = CLIENTS[client_name](viewer, width, height)
+        for _ in range(args.clients):
+            clients.append(CLIENTS[client_name](viewer, width, height))
         viewer.playback.playing = True
         time.sleep(args.warmup)
-        client.picture_times()
+        for client in clients:
+            client.picture_times()
         renders = []
         start = time.monotonic()
         while time.monotonic() - start < args.seconds:
             time.sleep(0.1)
             renders += [s.stats.render_seconds for s in viewer.streams.values()]
-        arrived = client.picture_times()
+        fps = sum(rate(client.picture_times()) for client in clients)
         stats = next(iter(viewer.streams.values())).stats
         size = (stats.camera.width, stats.camera.height) if stats.camera else (width, height)
-        fps = (len(arrived) - 1) / (arrived[-1] - arrived[0]) if len(arrived) > 1 else 0.0
         return fps, 1000 * float(np.mean(renders)) if renders else float("nan"), size
     finally:
-        if client is not None:
+        for client in clients:
             client.close()
         viewer.close()
 
@@ -205,6 +214,7 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=10.0, help="seconds counted per model")
     ap.add_argument("--warmup", type=float, default=5.0, help="seconds of playing before counting")
     ap.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
+    ap.add_argument("--clients", type=int, default=1, help="clients connected at once (their FPS are added)")
     ap.add_argument("--client", default="socket,browser",
                     help="comma-separated clients: browser (headless chromium on this machine), socket "
                          "(viser's protocol from Python, standing for a browser on another machine)")
@@ -213,10 +223,13 @@ def main() -> None:
     unknown = sorted(set(clients) - set(CLIENTS))
     if unknown or not clients:
         ap.error(f"--client takes {', '.join(CLIENTS)}; got {args.client!r}")
+    if args.clients < 1:
+        ap.error("--clients must be at least 1")
     width, height = (int(v) for v in args.size.lower().split("x"))
     print(f"CPU: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, load average "
           f"{os.getloadavg()[0]:.2f}; device {args.device}")
-    print(f"{args.gaussians} Gaussians, canvas {width}x{height}, playing, JPEG quality {ViewSettings().jpeg_quality}\n")
+    print(f"{args.gaussians} Gaussians, canvas {width}x{height}, playing, JPEG quality {ViewSettings().jpeg_quality}, "
+          f"{args.clients} client{'s' * (args.clients > 1)} at once\n")
     print(f"{'model':<8}{'client':<9}{'picture':>10}{'FPS at the client':>19}{'render ms':>11}")
     for client in clients:
         for kind in ("lite", "full"):
