@@ -2,10 +2,10 @@
 
 `render_image` is what a browser is sent: the Player's render for that camera and time, as 8-bit
 rgb. `ClientStream` renders for one connected browser whenever its camera, the time, the mode or the
-model changes: at a preview size while the camera moves, at full size once it rests. `RenderThread`
-runs the renders of every browser, one at a time, on one thread. It reads a
+model changes: at a preview size while the camera moves, at full size once it rests. It reads a
 client the way viser presents one (`client.camera.wxyz / position / fov / image_width / image_height`,
-`client.scene.set_background_image`), without importing viser.
+`client.scene.set_background_image`), without importing viser. `RenderThread` runs the renders of
+every browser, one at a time, on one thread.
 """
 from __future__ import annotations
 
@@ -79,8 +79,8 @@ class ViewSettings:
 @dataclass
 class FrameStats:
     """The last frame sent to a browser: its camera, time, mode, whether a preview, render seconds
-    (the Player's render, and any wait for other browsers' renders) and the wall-clock time it was sent; `sent` counts frames, `render_total` adds up
-    their render seconds."""
+    (the Player's render, and any wait for other browsers' renders) and the wall-clock time it was
+    sent; `sent` counts frames, `render_total` adds up their render seconds."""
 
     camera: Camera | None = None
     t: float = 0.0
@@ -113,9 +113,9 @@ class RenderThread:
     fn(*args), or raises what it raised.
 
     Why one thread: numba's OpenMP threading layer keeps a pool of worker threads for every thread
-    that starts parallel work. With several pools alive it counts more threads than cores, and its
-    workers then sleep between parallel loops instead of spinning, which makes every render several
-    times slower (docs/viewer.md). Rendering for every browser on one thread keeps one pool."""
+    that starts parallel work, and renders started from several threads at once (one per browser)
+    were each several times slower than from one (docs/viewer.md). Rendering for every browser on one
+    thread keeps one pool."""
 
     def __init__(self):
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="stg-view render")
