@@ -13,9 +13,10 @@ frames, and runs of different segments (on several GPUs or machines) never write
 from __future__ import annotations
 
 import json
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable, Iterable, Sequence
+from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
@@ -177,34 +178,68 @@ def build_frame_cache(cache_dir, signature: dict, shape: tuple, fill: Callable[[
     signature: JSON-able description of the source (files, sizes, modification times, options); the
     cache is reused only when it matches. shape: (C, F, H, W, 3). fill(array): writes every frame into
     the writable memmap it is given. The file is written under a temporary name and renamed when
-    complete, so an interrupted build is never taken for a cache. Returns a read-only memmap.
+    complete, so an interrupted build is never taken for a cache. Processes that need the same cache
+    at once (two runs on one dataset) take turns on a lock file in cache_dir: one builds it, the others
+    then find it built. Returns a read-only memmap.
     """
     cache_dir = Path(cache_dir)
     path, meta_path = cache_dir / CACHE_NAME, cache_dir / "frames_uint8.json"
     wanted = dict(signature, shape=list(shape))
-    if path.exists() and meta_path.exists():
-        try:
-            if json.loads(meta_path.read_text()) == wanted:
-                arr = np.load(path, mmap_mode="r")
-                if arr.shape == tuple(shape) and arr.dtype == np.uint8:
-                    return arr
-        except (OSError, ValueError):
-            pass
+    cached = _open_cache(path, meta_path, wanted)
+    if cached is not None:
+        return cached
     try:
         cache_dir.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise DataError(f"{cache_dir}: cannot create the frame cache folder ({e})") from None
-    remove_leftovers(cache_dir, CACHE_NAME)  # of an interrupted build
-    with atomic_output(path) as tmp:
-        try:
-            arr = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=tuple(shape))
-        except OSError as e:
-            raise DataError(f"{tmp}: cannot write the frame cache ({e})") from None
-        fill(arr)
-        arr.flush()
-        del arr
-    write_atomic(meta_path, json.dumps(wanted, indent=1))
+    with _cache_lock(cache_dir):
+        cached = _open_cache(path, meta_path, wanted)  # built by another process while this one waited
+        if cached is not None:
+            return cached
+        remove_leftovers(cache_dir, CACHE_NAME)  # of an interrupted build
+        with atomic_output(path) as tmp:
+            try:
+                arr = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=tuple(shape))
+            except OSError as e:
+                raise DataError(f"{tmp}: cannot write the frame cache ({e})") from None
+            fill(arr)
+            arr.flush()
+            del arr
+        write_atomic(meta_path, json.dumps(wanted, indent=1))
     return np.load(path, mmap_mode="r")
+
+
+def _open_cache(path: Path, meta_path: Path, wanted: dict) -> np.memmap | None:
+    """The cache at `path`, read-only, when it is complete and its metadata equal `wanted`; else None."""
+    if not (path.exists() and meta_path.exists()):
+        return None
+    try:
+        if json.loads(meta_path.read_text()) == wanted:
+            arr = np.load(path, mmap_mode="r")
+            if arr.shape == tuple(wanted["shape"]) and arr.dtype == np.uint8:
+                return arr
+    except (OSError, ValueError):
+        pass
+    return None
+
+
+@contextmanager
+def _cache_lock(cache_dir: Path) -> Iterator[None]:
+    """Hold an exclusive lock (fcntl.flock on cache_dir/frames_uint8.lock) for the block: a second
+    process waits until the first has finished. Without fcntl (Windows) or where the file system
+    refuses locks, no lock."""
+    try:
+        import fcntl
+        handle = open(cache_dir / "frames_uint8.lock", "a")
+    except (ImportError, OSError):
+        yield
+        return
+    with handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX)
+        except OSError:
+            pass
+        yield  # the lock goes with the file's closing
 
 
 class ChunkedFrames:
