@@ -8,8 +8,8 @@ by the object they show (the room, where objects pass or cast shadows; the movin
 
     python bench/ablation.py [--iterations N] [--points N] [--cameras C] [--frames F] [--width W]
                              [--height H] [--supersample S] [--variants full,no-motion,...]
-                             [--set KEY=VALUE ...] [--true-motion] [--no-novel] [--threads 2]
-                             [--json PATH]
+                             [--set KEY=VALUE ...] [--true-motion] [--videos] [--no-novel]
+                             [--threads 2] [--json PATH]
 
 Variants (TrainConfig settings): full; no-temporal-opacity (frozen temporal_opacity: opacity(t) = 1);
 no-motion (frozen motion = 0); no-rotation (frozen omega = 0); no-feature-splatting (the lite model:
@@ -27,6 +27,8 @@ acts on views whose SSIM is below 0.91 at its start: with a sparse initialisatio
 ground truth (and the novel views') with 4 x 4 rays per pixel: the demo's one ray per pixel leaves the
 checkered objects aliased, which no 3D model can reproduce (docs/dynamic.md). --true-motion (a
 diagnostic) gives the Gaussians initialised on the moving sphere its true trajectory as their motion.
+--videos trains from the scene's lossy videos (camXX.mp4), as a user's capture would be, instead of its
+PNG frames; the figures are still against the lossless frames.
 """
 from __future__ import annotations
 
@@ -146,6 +148,7 @@ def main() -> None:
                          "textures are finer than a pixel)")
     ap.add_argument("--true-motion", action="store_true",
                     help="diagnostic: give the Gaussians initialised on the moving sphere its true trajectory")
+    ap.add_argument("--videos", action="store_true", help="train from the lossy videos, not the PNG frames")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--data", default=None, help="scene folder (generated once; default: a temp folder per size)")
@@ -162,12 +165,13 @@ def main() -> None:
     data = Path(args.data or os.path.join(tempfile.gettempdir(), f"stg-ablation-scene-{size}"))
     ensure_demo_scene(data, cameras=args.cameras, frames=args.frames, width=args.width, height=args.height,
                       supersample=args.supersample)
-    ds = load_n3v(data, prefer_png=True)
+    ds = load_n3v(data, prefer_png=True)  # the lossless frames: the ground truth of every figure
+    train_ds = load_n3v(data, prefer_png=False) if args.videos else ds
     settings = dict(args.set)
     scene = SyntheticScene(seed=0, duration=args.frames / ds.fps)
     novel = None if args.no_novel else novel_view_dataset(scene, args.frames, ds.fps, args.width, args.height,
                                                           supersample=args.supersample)
-    print(f"{ds}; {args.iterations} iterations, {args.points} initial points, seed {args.seed}, "
+    print(f"{train_ds}; {args.iterations} iterations, {args.points} initial points, seed {args.seed}, "
           f"{args.threads} threads, settings {settings}", flush=True)
 
     results = {}
@@ -175,7 +179,7 @@ def main() -> None:
         label, overrides = VARIANTS[name]
         cfg = TrainConfig(**{**DEMO_TRAINING, "iterations": args.iterations, "num_points": args.points,
                              "seed": args.seed, **settings, **overrides})
-        trainer = Trainer(ds, cfg)
+        trainer = Trainer(train_ds, cfg)
         if args.true_motion:
             print(f"  {give_true_motion(trainer, scene, args.frames / ds.fps)} Gaussians given the moving sphere's "
                   "true trajectory", flush=True)
