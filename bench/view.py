@@ -71,6 +71,16 @@ def browser(width: int, height: int):
     return driver
 
 
+def browser_missing() -> str | None:
+    """Why the browser client cannot run here (no selenium, chromium or chromedriver), or None."""
+    try:
+        import selenium  # noqa: F401
+    except ImportError:
+        return 'no selenium (python -m pip install -e ".[viewer,test]")'
+    absent = [name for name in ("chromium", "chromedriver") if shutil.which(name) is None]
+    return f"no {' or '.join(absent)} (apt-get install -y chromium chromium-driver)" if absent else None
+
+
 def fit_window(driver, url: str, width: int, height: int) -> tuple[int, int]:
     """Open `url` and size the window so that the page's canvas is width x height; returns its size."""
     driver.set_window_size(width, height + 200)
@@ -225,6 +235,12 @@ def main() -> None:
         ap.error(f"--client takes {', '.join(CLIENTS)}; got {args.client!r}")
     if args.clients < 1:
         ap.error("--clients must be at least 1")
+    missing = browser_missing()
+    if "browser" in clients and missing:
+        print(f"browser client skipped: {missing}")
+        clients.remove("browser")
+    if not clients:
+        raise SystemExit(2)
     width, height = (int(v) for v in args.size.lower().split("x"))
     print(f"CPU: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, load average "
           f"{os.getloadavg()[0]:.2f}; device {args.device}")
