@@ -1,9 +1,8 @@
 """The render callback (stg_runtime.viewer.frames): the image sent to a browser is Player.render for
 the browser's camera, converted with viser's conventions, at the current time."""
+import threading
 from pathlib import Path
 from types import SimpleNamespace
-
-import threading
 
 import numpy as np
 import pytest
