@@ -8,8 +8,8 @@ by the object they show (the room, where objects pass or cast shadows; the movin
 
     python bench/ablation.py [--iterations N] [--points N] [--cameras C] [--frames F] [--width W]
                              [--height H] [--supersample S] [--variants full,no-motion,...]
-                             [--set KEY=VALUE ...] [--true-motion] [--videos] [--no-novel]
-                             [--threads 2] [--json PATH]
+                             [--set KEY=VALUE ...] [--true-motion] [--videos] [--per-frame 0,10,20]
+                             [--no-novel] [--threads 2] [--json PATH]
 
 Variants (TrainConfig settings): full; no-temporal-opacity (frozen temporal_opacity: opacity(t) = 1);
 no-motion (frozen motion = 0); no-rotation (frozen omega = 0); no-feature-splatting (the lite model:
@@ -28,7 +28,10 @@ ground truth (and the novel views') with 4 x 4 rays per pixel: the demo's one ra
 checkered objects aliased, which no 3D model can reproduce (docs/dynamic.md). --true-motion (a
 diagnostic) gives the Gaussians initialised on the moving sphere its true trajectory as their motion.
 --videos trains from the scene's lossy videos (camXX.mp4), as a user's capture would be, instead of its
-PNG frames; the figures are still against the lossless frames.
+PNG frames; the figures are still against the lossless frames. --per-frame J,... adds a per-frame
+reference: for each frame J, a model trained on that frame alone (the training cameras at J, the full
+model's settings and step count), and the held-out camera's PSNR at J over the clip's dynamic and
+static pixels, for it and for every variant (docs/dynamic.md, "A per-frame reference").
 """
 from __future__ import annotations
 
@@ -44,6 +47,7 @@ import torch
 
 from stg_train.pipeline import DEMO_SCENE, DEMO_TRAINING, ensure_demo_scene
 from stg_train.data import load_n3v
+from stg_train.data.dataset import Dataset
 from stg_train.metrics import dynamic_mask, evaluate_images
 from stg_train.synthetic import OBJECT_NAMES, SyntheticScene, novel_view_dataset
 from stg_train.trainer import Trainer, TrainConfig
@@ -67,6 +71,27 @@ def evaluate(trainer: Trainer, dataset) -> dict:
     j / num_frames as in training), dynamic and static regions per camera (metrics.evaluate_images)."""
     r = evaluate_images(lambda ci, j: trainer.render_numpy(dataset.cameras[ci], j / dataset.num_frames), dataset)
     return {k: r[k] for k in FIGURES}
+
+
+def frame_figures(image: np.ndarray, dataset, frame: int) -> dict:
+    """PSNR (dB) of `image` (H, W, 3) against `dataset`'s first test camera at `frame`, over the pixels
+    that are dynamic over the clip (dynamic_mask) and over the others."""
+    ci = dataset.test_cameras[0]
+    dynamic = dynamic_mask([dataset.image(ci, j) for j in range(dataset.num_frames)])
+    err = ((image - dataset.image(ci, frame)) ** 2).mean(-1)
+    psnr = lambda m: float(10 * np.log10(1 / max(err[m].mean(), 1e-12))) if m.any() else None  # noqa: E731
+    return {"dynamic_psnr": psnr(dynamic), "static_psnr": psnr(~dynamic)}
+
+
+def per_frame_reference(train_ds, eval_ds, config: TrainConfig, frame: int) -> dict:
+    """frame_figures of a model trained with `config` on `train_ds`'s frame `frame` alone (every camera
+    at that frame, as a one-frame dataset), against `eval_ds` at that frame."""
+    frames = np.stack([train_ds.frame(ci, frame)[None] for ci in range(len(train_ds.cameras))])
+    one = Dataset(train_ds.cameras, frames, train_ds.fps, test_cameras=train_ds.test_cameras,
+                  bounds=train_ds.bounds)
+    trainer = Trainer(one, config)
+    trainer.train(progress=False)
+    return frame_figures(trainer.render_numpy(eval_ds.cameras[eval_ds.test_cameras[0]], 0.0), eval_ds, frame)
 
 
 def object_breakdown(trainer: Trainer, dataset, scene: SyntheticScene) -> dict:
@@ -149,6 +174,8 @@ def main() -> None:
     ap.add_argument("--true-motion", action="store_true",
                     help="diagnostic: give the Gaussians initialised on the moving sphere its true trajectory")
     ap.add_argument("--videos", action="store_true", help="train from the lossy videos, not the PNG frames")
+    ap.add_argument("--per-frame", default="", metavar="J,...",
+                    help="frames at which to train a one-frame reference and compare every variant with it")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--data", default=None, help="scene folder (generated once; default: a temp folder per size)")
@@ -174,6 +201,9 @@ def main() -> None:
     print(f"{train_ds}; {args.iterations} iterations, {args.points} initial points, seed {args.seed}, "
           f"{args.threads} threads, settings {settings}", flush=True)
 
+    per_frame = [int(j) for j in args.per_frame.split(",") if j.strip()]
+    if any(not 0 <= j < ds.num_frames for j in per_frame):
+        ap.error(f"--per-frame: frames are 0..{ds.num_frames - 1}")
     results = {}
     for name in names:
         label, overrides = VARIANTS[name]
@@ -191,7 +221,10 @@ def main() -> None:
                          "objects": object_breakdown(trainer, ds, scene),
                          "train_seconds": trainer.seconds, "guided_added": added,
                          "guided_log": [] if guided is None else guided.log,
-                         "guided_view_ssim": [] if guided is None else guided.scores}
+                         "guided_view_ssim": [] if guided is None else guided.scores,
+                         "per_frame": {j: frame_figures(trainer.render_numpy(ds.cameras[ds.test_cameras[0]],
+                                                                             j / ds.num_frames), ds, j)
+                                       for j in per_frame}}
         r = results[name]
         novel_text = "" if novel is None else (f"  novel dynamic / static {_fmt(r['novel']['dynamic_psnr'])} / "
                                                f"{_fmt(r['novel']['static_psnr'])} dB")
@@ -219,8 +252,24 @@ def main() -> None:
                      f"{_fmt(nv.get('static_psnr')):>12} | {r['dssim1']:.4f} | {r['gaussians']:9d} | "
                      f"{r['train_seconds']:7.0f} | {r['guided_added']:12d} |")
     print("\n".join(lines))
+    references = {}
+    if per_frame:
+        cfg = TrainConfig(**{**DEMO_TRAINING, "iterations": args.iterations, "num_points": args.points,
+                             "seed": args.seed, **settings})
+        print("\nper-frame reference: held-out dynamic / static PSNR (dB) at each frame; a variant's "
+              "dynamic pixels behind the one-frame model's")
+        for j in per_frame:
+            ref = references[j] = per_frame_reference(train_ds, ds, cfg, j)
+            cells = [f"one-frame model {_fmt(ref['dynamic_psnr'])} / {_fmt(ref['static_psnr'])}"]
+            for r in results.values():
+                f = r["per_frame"][j]
+                behind = ("" if None in (f["dynamic_psnr"], ref["dynamic_psnr"])
+                          else f", {ref['dynamic_psnr'] - f['dynamic_psnr']:.2f} behind")
+                cells.append(f"{r['label']} {_fmt(f['dynamic_psnr'])} / {_fmt(f['static_psnr'])}{behind}")
+            print(f"  frame {j}: " + "; ".join(cells), flush=True)
     if args.json:
-        Path(args.json).write_text(json.dumps({"settings": {**vars(args), "set": settings}, "results": results}, indent=1) + "\n")
+        Path(args.json).write_text(json.dumps({"settings": {**vars(args), "set": settings}, "results": results,
+                                               "per_frame_reference": references}, indent=1) + "\n")
 
 
 if __name__ == "__main__":
