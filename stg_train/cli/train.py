@@ -15,7 +15,7 @@ from ..pipeline import DEMO_SCENE, DEMO_TRAINING, run_demo, train
 from ..render import resolve_backend
 from ..threads import set_cpu_threads
 from ..segments import SegmentError, parse_segment_list
-from ..trainer import TrainConfig
+from ..trainer import MOTION_INITS, TrainConfig
 from .common import add_dataset_options, check_dataset_options, dataset_options, error, format_table, positive_int
 
 PROG = "stg-train"
@@ -118,7 +118,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "(N3V), else the COLMAP model's points, else the SfM points (SfM then runs for them)")
     p.add_argument("--init-every", type=positive_int, default=1, metavar="N",
                    help="run SfM on every N-th frame (default %(default)s: every frame, as the paper)")
-    p.add_argument("--motion-init", choices=["flow", "zero"], default=d.motion_init,
+    p.add_argument("--motion-init", choices=MOTION_INITS, default=d.motion_init,
                    help="initial motion of the Gaussians: flow = each initial point's velocity triangulated from "
                         "the optical flow of its frame in the training cameras that see it (points whose flow is "
                         "under half a pixel stay at rest); zero = at rest, as the reference implementation "
