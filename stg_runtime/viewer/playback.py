@@ -21,8 +21,7 @@ class Playback:
         if not last >= first:
             raise ValueError(f"playback range [{first}, {last}] s is empty")
         self.first, self.last, self.fps = float(first), float(last), float(fps)
-        self.time = self.first
-        self._position = self.first  # self.time, or beyond `last` while the last frame is shown
+        self._position = self.first  # the time, or beyond `last` while the last frame is shown
         self.playing = False
         self.loop = True
         self.speed = 1.0
@@ -36,6 +35,11 @@ class Playback:
         return cls(float(times[0]), float(times[-1]), player.fps)
 
     @property
+    def time(self) -> float:
+        """The current time in seconds, in [first, last]."""
+        return min(self._position, self.last)
+
+    @property
     def frame(self) -> int:
         """The index (from the video's frame 0) of the frame shown at the current time."""
         return int(np.floor(self.time * self.fps + 1e-6))
@@ -43,8 +47,8 @@ class Playback:
     def seek(self, t: float) -> float:
         """Set the time (clamped to the range); returns it."""
         with self._lock:
-            self.time = self._position = min(max(float(t), self.first), self.last)
-            return self.time
+            self._position = min(max(float(t), self.first), self.last)
+            return self._position
 
     def tick(self, now: float | None = None) -> float:
         """Advance by the wall-clock seconds since the last tick (time.monotonic(), or `now`); returns
@@ -67,5 +71,4 @@ class Playback:
             elif t >= self.last + 1.0 / self.fps - 1e-9:  # the last frame has been shown for 1 / fps
                 t = self.first + (t - self.first + 1e-9) % (span + 1.0 / self.fps)
             self._position = t
-            self.time = min(t, self.last)
             return self.time
