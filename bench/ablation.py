@@ -48,7 +48,7 @@ import torch
 from stg_train.pipeline import DEMO_SCENE, DEMO_TRAINING, ensure_demo_scene
 from stg_train.data import load_n3v
 from stg_train.data.dataset import Dataset
-from stg_train.metrics import dynamic_mask, evaluate_images
+from stg_train.metrics import dynamic_mask, evaluate_images, psnr_of_mse
 from stg_train.synthetic import OBJECT_NAMES, SyntheticScene, novel_view_dataset
 from stg_train.trainer import Trainer, TrainConfig
 
@@ -79,7 +79,7 @@ def frame_figures(image: np.ndarray, dataset, frame: int) -> dict:
     ci = dataset.test_cameras[0]
     dynamic = dynamic_mask([dataset.image(ci, j) for j in range(dataset.num_frames)])
     err = ((image - dataset.image(ci, frame)) ** 2).mean(-1)
-    psnr = lambda m: float(10 * np.log10(1 / max(err[m].mean(), 1e-12))) if m.any() else None  # noqa: E731
+    psnr = lambda m: psnr_of_mse(max(err[m].mean(), 1e-12)) if m.any() else None  # noqa: E731
     return {"dynamic_psnr": psnr(dynamic), "static_psnr": psnr(~dynamic)}
 
 
@@ -112,7 +112,7 @@ def object_breakdown(trainer: Trainer, dataset, scene: SyntheticScene) -> dict:
         m = (ids == k) & dynamic[None]
         if m.any():
             name = OBJECT_NAMES[k] if k >= 0 else "room"
-            out[name] = {"psnr": float(10 * np.log10(1 / max(err[m].mean(), 1e-12))),
+            out[name] = {"psnr": psnr_of_mse(max(err[m].mean(), 1e-12)),
                          "share": float(err[m].sum() / max(total, 1e-12)), "pixels": int(m.sum())}
     return out
 
