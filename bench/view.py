@@ -94,11 +94,6 @@ def fit_window(driver, url: str, width: int, height: int) -> tuple[int, int]:
     return tuple(driver.execute_script("return [window.innerWidth, window.innerHeight]"))
 
 
-def picture_times(driver) -> list[float]:
-    """Seconds (browser clock) at which pictures reached the page since the last call."""
-    return [ms / 1000 for ms in driver.execute_script("return window.__pictures.splice(0)")]
-
-
 class BrowserClient:
     """Headless chromium showing the viewer with a canvas of width x height."""
 
@@ -107,7 +102,8 @@ class BrowserClient:
         fit_window(self.driver, viewer.url, width, height)
 
     def picture_times(self) -> list[float]:
-        return picture_times(self.driver)
+        """Seconds (browser clock) at which pictures reached the page since the last call."""
+        return [ms / 1000 for ms in self.driver.execute_script("return window.__pictures.splice(0)")]
 
     def close(self) -> None:
         self.driver.quit()
