@@ -27,6 +27,7 @@ from stg_runtime.camera import orbit
 from stg_runtime.player import Player
 from stg_runtime.progress import progress_stages
 
+from .config import DEMO_SCENE, DEMO_TRAINING  # noqa: F401 (re-exported: the benchmarks use them)
 from .convert.merge import merge_files
 from .data import DataError, load_dataset
 from .export import export_trainer
@@ -36,10 +37,6 @@ from .segments import (SegmentError, check_plan, finished, missing_message, plan
 from .synthetic import SyntheticScene, write_n3v
 from .trainer import Trainer, TrainConfig
 
-#: The demo's synthetic scene (stg-train --demo, the benchmarks).
-DEMO_SCENE = {"cameras": 12, "frames": 30, "fps": 30.0, "width": 160, "height": 120}
-#: Training settings of the demo (docs/performance.md has its time and quality).
-DEMO_TRAINING = {"iterations": 1500, "num_points": 8000}
 
 
 def ensure_demo_scene(data, announce: bool = False, supersample: int = 1, **sizes) -> Path:

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import random
 import time
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Callable
 
@@ -26,78 +26,15 @@ from stg_runtime.camera import Camera
 from stg_runtime.progress import Progress
 
 from .data.flow import initial_velocity
-from .data.points import initial_points, resolve_method
+from .config import MOTION_INITS, TrainConfig  # noqa: F401 (TrainConfig's home is config; re-exported)
+from .data.points import initial_points
 from .losses import loss_fn
 from .metrics import psnr_of_mse
 from .params import LearningRates, STGParams, extent_of, position_lr, view_inputs
-from .render import rasterize, resolve_backend
+from .render import rasterize
 from .strategy import DensityControl, GuidedSampling, Schedule, StepContext, Strategy, Thresholds
 
 CHECKPOINT_VERSION = 1
-
-
-#: TrainConfig.motion_init values.
-MOTION_INITS = ("flow", "zero")
-
-
-@dataclass
-class TrainConfig:
-    """Settings of a run (stored in checkpoints and in the exported file's provenance).
-
-    model: "full" (9 features + decoder) or "lite" (rgb); iterations: optimisation steps; batch: views
-    per step (one shared time); num_points: initial Gaussians (the most SfM points kept); init: where the
-    initial points come from, one of stg_train.data.points.METHODS: "auto" (or None: default_method of
-    the dataset), "sfm" (stg_train.data.sfm on every init_every-th frame), "volume"
-    (stg_train.data.volume) or "combined" (SfM points plus view-volume samples where they leave holes);
-    depth_candidates: photo-consistency depth search of the view-volume points (0: uniform depths; see
-    stg_train.data.volume.sample_view_volume); static: freeze the time terms (ablation); lr_scale:
-    multiplies every reference learning rate; stretch_rates: the motion and rotation velocities' rates
-    stretched to the run's length (params.LearningRates.stretched; False: the reference's 30k-step
-    rates); schedule: Schedule field overrides (iterations of this run) on top of the reference schedule
-    stretched to `iterations`; thresholds: Thresholds field overrides; seed: numpy /
-    torch / python seeds; device: "cpu" or "cuda"; splatter: the rasteriser backend, "numba", "torch",
-    "gsplat" or "auto" (stg_train.render.rasterize and resolve_backend: numba on the CPU, gsplat on CUDA
-    where it can run, else torch); guided: guided sampling of Gaussians in high-error patches
-    (stg_train.strategy.guided, the paper's Sec. 4.4); frozen: time components
-    switched off for ablations (params.COMPONENTS: "temporal_opacity", "motion", "rotation",
-    "time_features"; `static` freezes them all); motion_init: the initial motion, "zero" (the
-    reference's) or "flow" (each initial point's velocity from the optical flow of its frame in the
-    training cameras, stg_train.data.flow).
-    """
-
-    model: str = "full"
-    iterations: int = 3000
-    batch: int = 2
-    num_points: int = 20000
-    depth_candidates: int = 64
-    init: str | None = "auto"
-    init_every: int = 1
-    static: bool = False
-    lr_scale: float = 1.0
-    stretch_rates: bool = True
-    schedule: dict = field(default_factory=dict)
-    thresholds: dict = field(default_factory=dict)
-    seed: int = 0
-    device: str = "cpu"
-    checkpoint_every: int = 500
-    splatter: str = "auto"
-    guided: bool = True
-    frozen: tuple = ()
-    motion_init: str = "flow"
-
-    def for_dataset(self, dataset) -> "TrainConfig":
-        """These settings with the choices left open made: init "auto" (or None) -> default_method(dataset),
-        splatter "auto" -> resolve_backend(splatter, device)."""
-        init = resolve_method(dataset, self.init)
-        config = self if init == self.init else replace(self, init=init)
-        if config.splatter == "auto":
-            config = replace(config, splatter=resolve_backend("auto", config.device))
-        return config
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "TrainConfig":
-        names = {f.name for f in fields(cls)}
-        return cls(**{k: v for k, v in d.items() if k in names})
 
 
 # -- the trainer ------------------------------------------------------------------------------------
@@ -288,9 +225,11 @@ class Trainer:
             torch.save(self.state_dict(), tmp)
 
     @classmethod
-    def resume(cls, dataset, path, out_dir=None, device: str | None = None, splatter: str | None = None) -> "Trainer":
+    def resume(cls, dataset, path, out_dir=None, device: str | None = None, splatter: str | None = None,
+               changes: dict | None = None) -> "Trainer":
         """Continue the run saved in checkpoint `path` (its settings win; `device` and `splatter` may
-        move it to another device or rasteriser backend)."""
+        move it to another device or rasteriser backend; `changes`, TrainConfig fields, replace others:
+        the caller decides which may change mid-run, as stg_train.pipeline does)."""
         state = torch.load(path, map_location="cpu", weights_only=True)
         if state.get("version") != CHECKPOINT_VERSION:
             raise ValueError(f"{path}: checkpoint version {state.get('version')} is not {CHECKPOINT_VERSION}")
@@ -299,4 +238,6 @@ class Trainer:
             config.device = device
         if splatter is not None:
             config.splatter = splatter
+        if changes:
+            config = replace(config, **changes)
         return cls(dataset, config, Path(path).parent if out_dir is None else out_dir, _state=state)

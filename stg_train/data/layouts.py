@@ -21,6 +21,7 @@ from typing import Callable
 
 from stg_runtime.progress import progress_callback
 
+from ..choices import LAYOUTS
 from .bounds import uniform_bounds
 from .dataset import DataError, Dataset
 from .immersive import MODELS_FILE, load_immersive
@@ -30,9 +31,7 @@ from .rig import load_rig
 from .technicolor import load_technicolor
 
 #: Layout name -> its reader, in detection order (raw data before the reference's preprocessing).
-READERS = {"n3v": load_n3v, "technicolor": load_technicolor, "immersive": load_immersive, "reference": load_reference,
-           "rig": load_rig}
-LAYOUTS = tuple(READERS)
+READERS = dict(zip(LAYOUTS, (load_n3v, load_technicolor, load_immersive, load_reference, load_rig)))
 _CAM_VIDEO = re.compile(r"^cam\d+\.mp4$")
 _CAMERA_VIDEO = re.compile(r"^camera_\d+\.mp4$")
 _UNDIST = re.compile(r"^.+_undist_\d+_\d+\.png$")

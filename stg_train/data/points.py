@@ -20,13 +20,14 @@ from typing import Callable
 
 import numpy as np
 
+from ..choices import INIT_METHODS
 from .bounds import MIN_VISIBLE, bounds_from_points, describe
 from .coverage import coverage_masks, coverage_radius
 from .dataset import DataError
 from .sfm import MIN_SFM_POINTS, sfm_points
 from .volume import sample_view_volume
 
-METHODS = ("auto", "sfm", "volume", "combined")
+METHODS = INIT_METHODS
 
 
 @dataclass

@@ -1,0 +1,80 @@
+"""The settings of a training run, without torch: the command lines build their parsers and `--help`
+from these (and stg_train.choices) before any heavy module is imported.
+
+    TrainConfig     a run's settings (stored in checkpoints and in the exported file's provenance)
+    DEMO_SCENE      the demo's synthetic scene (stg-train --demo, the benchmarks)
+    DEMO_TRAINING   the demo's training settings
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields, replace
+
+from .choices import INIT_METHODS, MOTION_INITS  # noqa: F401 (MOTION_INITS re-exported for the trainer)
+
+#: The demo's synthetic scene (stg-train --demo, the benchmarks).
+DEMO_SCENE = {"cameras": 12, "frames": 30, "fps": 30.0, "width": 160, "height": 120}
+#: Training settings of the demo (docs/performance.md has its time and quality).
+DEMO_TRAINING = {"iterations": 1500, "num_points": 8000}
+
+
+@dataclass
+class TrainConfig:
+    """Settings of a run (stored in checkpoints and in the exported file's provenance).
+
+    model: "full" (9 features + decoder) or "lite" (rgb); iterations: optimisation steps; batch: views
+    per step (one shared time); num_points: initial Gaussians (the most SfM points kept); init: where the
+    initial points come from, one of INIT_METHODS: "auto" (or None: default_method of
+    the dataset), "sfm" (stg_train.data.sfm on every init_every-th frame), "volume"
+    (stg_train.data.volume) or "combined" (SfM points plus view-volume samples where they leave holes);
+    depth_candidates: photo-consistency depth search of the view-volume points (0: uniform depths; see
+    stg_train.data.volume.sample_view_volume); static: freeze the time terms (ablation); lr_scale:
+    multiplies every reference learning rate; stretch_rates: the motion and rotation velocities' rates
+    stretched to the run's length (params.LearningRates.stretched; False: the reference's 30k-step
+    rates); schedule: Schedule field overrides (iterations of this run) on top of the reference schedule
+    stretched to `iterations`; thresholds: Thresholds field overrides; seed: numpy /
+    torch / python seeds; device: "cpu" or "cuda"; splatter: the rasteriser backend, "numba", "torch",
+    "gsplat" or "auto" (stg_train.render.rasterize and resolve_backend: numba on the CPU, gsplat on CUDA
+    where it can run, else torch); guided: guided sampling of Gaussians in high-error patches
+    (stg_train.strategy.guided, the paper's Sec. 4.4); frozen: time components
+    switched off for ablations (params.COMPONENTS: "temporal_opacity", "motion", "rotation",
+    "time_features"; `static` freezes them all); motion_init: the initial motion, "zero" (the
+    reference's) or "flow" (each initial point's velocity from the optical flow of its frame in the
+    training cameras, stg_train.data.flow).
+    """
+
+    model: str = "full"
+    iterations: int = 3000
+    batch: int = 2
+    num_points: int = 20000
+    depth_candidates: int = 64
+    init: str | None = "auto"
+    init_every: int = 1
+    static: bool = False
+    lr_scale: float = 1.0
+    stretch_rates: bool = True
+    schedule: dict = field(default_factory=dict)
+    thresholds: dict = field(default_factory=dict)
+    seed: int = 0
+    device: str = "cpu"
+    checkpoint_every: int = 500
+    splatter: str = "auto"
+    guided: bool = True
+    frozen: tuple = ()
+    motion_init: str = "flow"
+
+    def for_dataset(self, dataset) -> "TrainConfig":
+        """These settings with the choices left open made: init "auto" (or None) -> default_method(dataset),
+        splatter "auto" -> resolve_backend(splatter, device)."""
+        from .data.points import resolve_method  # numpy and the data package, not needed to read settings
+        from .render import resolve_backend  # torch
+
+        init = resolve_method(dataset, self.init)
+        config = self if init == self.init else replace(self, init=init)
+        if config.splatter == "auto":
+            config = replace(config, splatter=resolve_backend("auto", config.device))
+        return config
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "TrainConfig":
+        names = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in names})
