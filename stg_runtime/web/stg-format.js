@@ -1,0 +1,400 @@
+// Read `.stg` files in the browser (and in node), exactly as formats/stg-v1.md section 4 says: the
+// JavaScript twin of stg_runtime/format.py, with the same checks, the same Limits and the same messages
+// (each starting with the file's name). Nothing is evaluated; every declaration is checked against the
+// limits before anything of that size is allocated.
+//
+//   readStg(bytes: Uint8Array, name, limits?) -> Promise<model>            a whole file
+//   readPrefix(bytes) -> {major, minor, headerLength}                       the first 20 bytes
+//   parseHeader(headerBytes, fileSize, name, limits?) -> model without arrays (segments not yet decoded)
+//   decodeSegment(model, i, section: {length, bytes(offset, length)}) -> Promise<segment arrays>
+//   verifyChecksum(bytes) -> Promise<void>                                    SHA-256 of all but the last 32 bytes
+//
+// A model: {name, kind, fps, numFrames, startFrame, duration, cameras: [camera], bounds, provenance,
+// fileSize, segments: [{startFrame, numFrames, count, positionDegree, rotationDegree, channels, entry,
+// decoded: null | {opacity, t_center, t_scale, position, rotation, scale, features (Float32Array, C-order),
+// decoder: null | MLP (onnx-mlp.js), activation}}]}. A camera: {name, width, height, fx, fy, cx, cy,
+// model: "pinhole" | "fisheye", k: [k1, k2, k3, k4], worldToCamera: [16 numbers, row-major]}.
+
+import { readMlp } from "./onnx-mlp.js";
+import { sha256 } from "./sha256.js";
+
+export const MAGIC = [0x89, 0x53, 0x54, 0x47, 0x0d, 0x0a, 0x1a, 0x0a];
+export const VERSION = [1, 2];
+export const PREFIX_SIZE = 20;
+export const MAX_HEADER = 64 * 2 ** 20;
+export const KINDS = ["lite", "full", "sh"];
+export const ACTIVATIONS = ["sigmoid", "clamp", "identity"];
+export const ATTRIBUTES = ["opacity", "t_center", "t_scale", "position", "rotation", "scale", "features"];
+export const SH_CHANNELS = [3, 12, 27, 48];
+const BYTES = { f32: 4, f16: 2, u8: 1, u16: 2 };
+const CODECS = ["raw", "zlib"];
+
+/** The reader's defaults, those of stg_runtime.format.Limits (formats/stg-v1.md, "Limits"). */
+export const DEFAULT_LIMITS = Object.freeze({
+  maxGaussians: 2 ** 24, maxSegments: 4096, maxFrames: 2 ** 24, maxDegree: 8,
+  maxExpansion: 64, expansionAllowance: 64 * 2 ** 20, maxImageSide: 16384,
+});
+
+/** A file that is not a valid .stg file; the message starts with the file's name. */
+export class FormatError extends Error {
+  constructor(message) { super(message); this.name = "FormatError"; }
+}
+
+function fail(message) { throw new Error(message); }
+
+function named(name, fn) {
+  try {
+    return fn();
+  } catch (e) {
+    if (e instanceof FormatError) throw e;
+    throw new FormatError(`${name}: ${e.message}`);
+  }
+}
+
+async function namedAsync(name, fn) {
+  try {
+    return await fn();
+  } catch (e) {
+    if (e instanceof FormatError) throw e;
+    throw new FormatError(`${name}: ${e.message}`);
+  }
+}
+
+const typeName = (v) => (v === null ? "NoneType" : Array.isArray(v) ? "list" : typeof v === "object" ? "dict"
+  : typeof v === "number" ? (Number.isInteger(v) ? "int" : "float") : typeof v === "string" ? "str" : typeof v);
+
+/** obj[key], which must exist and be an int, a float (any number), a str, a list or a dict. */
+function get(obj, key, kind, where) {
+  if (!(key in obj)) fail(`${where}: missing field '${key}'`);
+  const v = obj[key];
+  const ok = { int: Number.isInteger(v), float: typeof v === "number", str: typeof v === "string",
+    list: Array.isArray(v), dict: v !== null && typeof v === "object" && !Array.isArray(v) }[kind];
+  if (!ok) fail(`${where}: field '${key}' must be of type ${kind}, got ${typeName(v)}`);
+  return v;
+}
+
+export function readPrefix(bytes) {
+  if (bytes.length < PREFIX_SIZE) fail(`truncated: ${bytes.length} bytes, shorter than the ${PREFIX_SIZE}-byte prefix`);
+  if (MAGIC.some((b, i) => bytes[i] !== b)) fail("not an STG file (wrong magic bytes)");
+  const view = new DataView(bytes.buffer, bytes.byteOffset, PREFIX_SIZE);
+  const major = view.getUint16(8, true), minor = view.getUint16(10, true);
+  const headerLength = Number(view.getBigUint64(12, true));
+  if (major !== VERSION[0]) fail(`unsupported version ${major}.${minor} (this reader reads ${VERSION[0]}.x)`);
+  if (headerLength > MAX_HEADER) fail(`header length ${headerLength} exceeds the ${MAX_HEADER}-byte limit`);
+  return { major, minor, headerLength };
+}
+
+/** SHA-256 check of a whole file (the last 32 bytes are the digest of everything before them). */
+export async function verifyChecksum(bytes) {
+  const digest = await sha256(bytes.subarray(0, bytes.length - 32));
+  const stored = bytes.subarray(bytes.length - 32);
+  if (digest.some((b, i) => b !== stored[i])) fail("checksum mismatch: the file is corrupt or truncated");
+}
+
+export function attributeShape(name, count, pdeg, qdeg, channels) {
+  return { opacity: [count], t_center: [count], t_scale: [count], position: [count, pdeg + 1, 3],
+    rotation: [count, qdeg + 1, 4], scale: [count, 3], features: [count, channels] }[name];
+}
+
+function featureChannels(spec, kind, where) {
+  if (kind === "lite") return 3;
+  if (kind === "full") return 9;
+  const shape = spec !== null && typeof spec === "object" ? spec.shape : undefined;
+  if (!(Array.isArray(shape) && shape.length === 2 && Number.isInteger(shape[1]) && SH_CHANNELS.includes(shape[1]))) {
+    fail(`${where}: shape ${JSON.stringify(shape)} is not (count, C) with C one of (3, 12, 27, 48) `
+      + "(3 (d+1)^2 SH coefficients, degree d in 0..3)");
+  }
+  return shape[1];
+}
+
+function layout(s, where, kind, limits) {
+  if (s === null || typeof s !== "object" || Array.isArray(s)) fail(`${where}: not a JSON object`);
+  const [start, frames, count, pdeg, qdeg] = ["start_frame", "num_frames", "count", "position_degree", "rotation_degree"]
+    .map((k) => get(s, k, "int", where));
+  if (Math.min(start, count, pdeg, qdeg) < 0 || frames <= 0) fail(`${where}: negative count/degree/start_frame or num_frames <= 0`);
+  if (count > limits.maxGaussians) {
+    fail(`${where}: ${count} Gaussians, more than the reader's limit of ${limits.maxGaussians} (stg_runtime.format.Limits)`);
+  }
+  if (Math.max(pdeg, qdeg) > limits.maxDegree) {
+    fail(`${where}: polynomial degrees ${pdeg}, ${qdeg} beyond the reader's limit of ${limits.maxDegree}`);
+  }
+  if (start + frames > limits.maxFrames) fail(`${where}: frames up to ${start + frames}, beyond the reader's limit of ${limits.maxFrames}`);
+  const attributes = get(s, "attributes", "dict", where);
+  for (const name of ATTRIBUTES) if (!(name in attributes)) fail(`${where}: missing attribute '${name}'`);
+  const channels = featureChannels(attributes.features, kind, `${where}, attribute 'features'`);
+  return { startFrame: start, numFrames: frames, count, positionDegree: pdeg, rotationDegree: qdeg, channels };
+}
+
+function camera(c, limits) {
+  if (c === null || typeof c !== "object" || Array.isArray(c)) throw new TypeError("a camera is a JSON object");
+  const model = "model" in c ? c.model : "pinhole";
+  if (model !== "pinhole" && model !== "fisheye") {
+    fail(`ValueError: unknown camera model ${JSON.stringify(model)} (this reader knows pinhole, fisheye)`);
+  }
+  const w2c = c.world_to_camera;
+  if (!Array.isArray(w2c) || w2c.length !== 16 || w2c.some((v) => typeof v !== "number")) {
+    fail("ValueError: world_to_camera must be 16 numbers");
+  }
+  const intr = model === "pinhole" ? c : c.intrinsics;
+  if (intr === null || typeof intr !== "object") fail("KeyError: 'intrinsics'");
+  for (const key of ["fx", "fy", "cx", "cy", ...(model === "fisheye" ? ["k1", "k2", "k3", "k4"] : [])]) {
+    if (!(key in intr)) fail(`KeyError: '${key}'`);
+    if (typeof intr[key] !== "number") fail(`TypeError: ${key} must be a number`);
+  }
+  for (const key of ["width", "height"]) {
+    if (!(key in c)) fail(`KeyError: '${key}'`);
+    if (typeof c[key] !== "number") fail(`TypeError: ${key} must be a number`);
+  }
+  const cam = { name: typeof c.name === "string" ? c.name : "", width: Math.trunc(c.width), height: Math.trunc(c.height),
+    fx: intr.fx, fy: intr.fy, cx: intr.cx, cy: intr.cy, model,
+    k: model === "fisheye" ? [intr.k1, intr.k2, intr.k3, intr.k4] : [0, 0, 0, 0], worldToCamera: w2c.slice() };
+  if (!(cam.width > 0 && cam.height > 0)) fail(`ValueError: image size must be positive, got ${cam.width}x${cam.height}`);
+  if (!(cam.fx > 0 && cam.fy > 0)) fail(`ValueError: focal lengths must be positive, got fx=${cam.fx}, fy=${cam.fy}`);
+  if (!w2c.every(Number.isFinite)) fail("ValueError: world_to_camera has non-finite entries");
+  if (!cam.k.every(Number.isFinite)) fail("ValueError: a fisheye camera takes 4 finite distortion coefficients");
+  const side = limits.maxImageSide;
+  if (cam.width > side || cam.height > side) {
+    fail(`ValueError: image size ${cam.width}x${cam.height} exceeds the reader's limit of ${side} pixels`);
+  }
+  if (!(cam.fx >= 1e-3 && cam.fx <= 1e9 && cam.fy >= 1e-3 && cam.fy <= 1e9)) {
+    fail(`ValueError: focal lengths fx=${cam.fx}, fy=${cam.fy} outside [1e-3, 1e9] pixels`);
+  }
+  if (!(Math.abs(cam.cx) <= 1e9 && Math.abs(cam.cy) <= 1e9)) {
+    fail(`ValueError: principal point (${cam.cx}, ${cam.cy}) is not within 1e9 pixels`);
+  }
+  if (!isRigid(w2c)) fail("ValueError: world_to_camera is not a rigid transform (rotation, translation, last row 0 0 0 1)");
+  return cam;
+}
+
+function isRigid(m) {
+  let worst = 0;
+  for (let i = 0; i < 3; i++) {
+    for (let j = 0; j < 3; j++) {
+      let dot = 0;
+      for (let k = 0; k < 3; k++) dot += m[4 * i + k] * m[4 * j + k];
+      worst = Math.max(worst, Math.abs(dot - (i === j ? 1 : 0)));
+    }
+  }
+  const det = m[0] * (m[5] * m[10] - m[6] * m[9]) - m[1] * (m[4] * m[10] - m[6] * m[8]) + m[2] * (m[4] * m[9] - m[5] * m[8]);
+  const t = Math.max(Math.abs(m[3]), Math.abs(m[7]), Math.abs(m[11]));
+  return worst <= 1e-4 && det > 0 && m[12] === 0 && m[13] === 0 && m[14] === 0 && m[15] === 1 && t <= 1e12;
+}
+
+/** Parse camera `c` (a camera object of formats/stg-v1.md or of a camera-path JSON file); throws Error. */
+export function parseCamera(c, limits = DEFAULT_LIMITS) {
+  try {
+    return camera(c, limits);
+  } catch (e) {
+    throw new Error(`invalid camera (${e.message})`);
+  }
+}
+
+/** The header (UTF-8 JSON bytes) of a file of `fileSize` bytes, checked: a model whose segments are
+ * not decoded yet. Throws FormatError. */
+export function parseHeader(headerBytes, fileSize, name, limits = DEFAULT_LIMITS) {
+  return named(name, () => {
+    let header;
+    try {
+      header = JSON.parse(new TextDecoder("utf-8", { fatal: true }).decode(headerBytes));
+    } catch (e) {
+      fail(`header is not valid UTF-8 JSON (${e.message})`);
+    }
+    if (header === null || typeof header !== "object" || Array.isArray(header)) fail("header is not a JSON object");
+    const kind = get(header, "kind", "str", "header");
+    if (!KINDS.includes(kind)) {
+      fail(`header: unknown model kind '${kind}' (this reader, version ${VERSION.join(".")}, renders ${KINDS.join(", ")}; a newer one may read it)`);
+    }
+    const entries = get(header, "segments", "list", "header");
+    if (!entries.length) fail("header: no segments");
+    if (entries.length > limits.maxSegments) fail(`header: ${entries.length} segments, more than the reader's limit of ${limits.maxSegments}`);
+    const segments = entries.map((s, i) => ({ ...layout(s, `segment ${i}`, kind, limits), entry: s, decoded: null }));
+    let values = 0;
+    for (const s of segments) {
+      for (const a of ATTRIBUTES) values += attributeShape(a, s.count, s.positionDegree, s.rotationDegree, s.channels).reduce((x, y) => x * y, 1);
+    }
+    const allowed = limits.maxExpansion * fileSize + limits.expansionAllowance;
+    if (4 * values > allowed) {
+      fail(`the arrays would take ${4 * values} bytes in memory, more than the reader allows for a ${fileSize}-byte file `
+        + `(${Math.round(allowed)}; stg_runtime.format.Limits)`);
+    }
+    const total = segments.reduce((n, s) => n + s.numFrames, 0);
+    if (get(header, "num_frames", "int", "header") !== total) fail(`header: num_frames ${header.num_frames} is not the segments' total`);
+    segments.forEach((s, i) => {
+      if (i && s.startFrame !== segments[i - 1].startFrame + segments[i - 1].numFrames) {
+        fail(`model: segment ${i} starts at frame ${s.startFrame}, not right after segment ${i - 1}`);
+      }
+      const decoder = s.entry.decoder;
+      if ((decoder === undefined || decoder === null) !== (kind !== "full")) {
+        fail(`model: segment ${i}: a ${kind} model ${kind === "full" ? "needs" : "has no"} decoder`);
+      }
+    });
+    const cameras = ("cameras" in header ? get(header, "cameras", "list", "header") : []).map((c, i) => {
+      try {
+        return camera(c, limits);
+      } catch (e) {
+        return fail(`camera ${i}: invalid (${e.message})`);
+      }
+    });
+    let bounds = header.bounds === undefined ? null : header.bounds;
+    if (bounds !== null) {
+      if (typeof bounds !== "object") fail("bounds: min and max must be 3 finite numbers each");
+      const lo = get(bounds, "min", "list", "bounds"), hi = get(bounds, "max", "list", "bounds");
+      if (lo.length !== 3 || hi.length !== 3 || ![...lo, ...hi].every(Number.isFinite)) fail("bounds: min and max must be 3 finite numbers each");
+      bounds = { min: lo, max: hi };
+    }
+    const provenance = "provenance" in header ? header.provenance : {};
+    if (provenance === null || typeof provenance !== "object" || Array.isArray(provenance)) fail("header: provenance must be an object");
+    const fps = get(header, "fps", "float", "header");
+    if (!(fps >= 1e-3 && fps <= 1e6)) fail(`header: fps ${fps} is outside [0.001, 1000000]`);
+    const startFrame = segments[0].startFrame;
+    return { name, kind, fps, numFrames: total, startFrame, startTime: startFrame / fps, duration: total / fps, cameras,
+      bounds, provenance, fileSize, segments };
+  });
+}
+
+// -- arrays -------------------------------------------------------------------------------------
+
+const HALF = (() => {  // uint16 bits -> float32, every value
+  const out = new Float32Array(65536);
+  for (let h = 0; h < 65536; h++) {
+    const s = h & 0x8000 ? -1 : 1, e = (h >> 10) & 31, m = h & 1023;
+    out[h] = e === 0 ? s * m * 2 ** -24 : e === 31 ? (m ? NaN : s * Infinity) : s * (1 + m / 1024) * 2 ** (e - 15);
+  }
+  return out;
+})();
+
+async function inflate(data, size, where) {
+  // zlib (RFC 1950) through the platform's DecompressionStream; never more than `size` bytes.
+  const junk = `${where}: zlib data does not end after ${size} bytes (longer, cut short or with junk)`;
+  const out = new Uint8Array(size);
+  let at = 0;
+  const reader = new Blob([data]).stream().pipeThrough(new DecompressionStream("deflate")).getReader();
+  try {
+    for (;;) {
+      const { done, value } = await reader.read();
+      if (done) break;
+      if (at + value.length > size) { reader.cancel().catch(() => {}); fail(junk); }
+      out.set(value, at);
+      at += value.length;
+    }
+  } catch (e) {
+    if (e.message === junk) throw e;
+    fail(junk);
+  }
+  if (at !== size) fail(`${where}: blob holds ${at} bytes, shape and encoding imply ${size}`);
+  return out;
+}
+
+async function blob(spec, section, size, where) {
+  const offset = get(spec, "offset", "int", where), length = get(spec, "length", "int", where);
+  const codec = get(spec, "codec", "str", where);
+  if (offset < 0 || length < 0 || offset + length > section.length) {
+    fail(`${where}: blob [${offset}, ${offset + length}) lies outside the ${section.length}-byte data section`);
+  }
+  if (!(size !== null ? CODECS : ["raw"]).includes(codec)) fail(`${where}: unsupported codec '${codec}'`);
+  const data = section.bytes(offset, length);
+  if (codec === "zlib") return inflate(data, size, where);
+  if (size !== null && data.length !== size) fail(`${where}: blob holds ${data.length} bytes, shape and encoding imply ${size}`);
+  return data;
+}
+
+function numbers(list, channels) {
+  if (!Array.isArray(list) || list.length !== channels || list.some((v) => typeof v !== "number")) return null;
+  return list.map(Math.fround);
+}
+
+async function array(spec, shape, section, where) {
+  if (spec === null || typeof spec !== "object" || Array.isArray(spec)) fail(`${where}: not a JSON object`);
+  const declared = get(spec, "shape", "list", where);
+  if (declared.length !== shape.length || declared.some((v, i) => v !== shape[i])) {
+    fail(`${where}: shape ${JSON.stringify(declared)} disagrees with count and degrees, expected ${JSON.stringify(shape)}`);
+  }
+  const encoding = get(spec, "encoding", "str", where);
+  if (!(encoding in BYTES)) fail(`${where}: unknown encoding '${encoding}'`);
+  const n = shape.reduce((a, b) => a * b, 1), channels = shape.slice(1).reduce((a, b) => a * b, 1);
+  let offset = null, scale = null;
+  if (encoding === "u8" || encoding === "u16") {  // checked before the blob is decoded
+    offset = numbers(spec.offset, channels);
+    scale = numbers(spec.scale, channels);
+    if (!offset || !scale) fail(`${where}: ${encoding} needs lists 'offset' and 'scale' of ${channels} numbers`);
+  }
+  const raw = await blob(get(spec, "data", "dict", where), section, n * BYTES[encoding], where);
+  const view = new DataView(raw.buffer, raw.byteOffset, raw.byteLength);
+  const out = new Float32Array(n);
+  if (encoding === "f32") for (let i = 0; i < n; i++) out[i] = view.getFloat32(4 * i, true);
+  else if (encoding === "f16") for (let i = 0; i < n; i++) out[i] = HALF[view.getUint16(2 * i, true)];
+  else if (encoding === "u8") for (let i = 0; i < n; i++) out[i] = offset[i % channels] + scale[i % channels] * raw[i];
+  else for (let i = 0; i < n; i++) out[i] = offset[i % channels] + scale[i % channels] * view.getUint16(2 * i, true);
+  for (let i = 0; i < n; i++) if (!Number.isFinite(out[i])) fail(`${where}: decoded values are not all finite`);
+  return out;
+}
+
+/** Decode segment i of `model` from its data section ({length, bytes(offset, length) -> Uint8Array});
+ * stores and returns segment.decoded. Throws FormatError. */
+export async function decodeSegment(model, i, section) {
+  const s = model.segments[i];
+  if (s.decoded) return s.decoded;
+  const where = `segment ${i}`;
+  const decoded = await namedAsync(model.name, async () => {
+    const out = {};
+    for (const name of ATTRIBUTES) {
+      const shape = attributeShape(name, s.count, s.positionDegree, s.rotationDegree, s.channels);
+      out[name] = await array(s.entry.attributes[name], shape, section, `${where}, attribute '${name}'`);
+    }
+    out.decoder = null;
+    out.activation = "sigmoid";
+    const d = s.entry.decoder;
+    if (d !== undefined && d !== null) {
+      if (typeof d !== "object" || Array.isArray(d)) fail(`${where}: decoder must be an object or null`);
+      out.activation = get(d, "activation", "str", `${where}, decoder`);
+      if (!ACTIVATIONS.includes(out.activation)) {
+        fail(`${where}, decoder: activation must be one of ('sigmoid', 'clamp', 'identity'), got '${out.activation}'`);
+      }
+      const bytes = await blob(get(d, "data", "dict", `${where}, decoder`), section, null, `${where}, decoder`);
+      try {
+        out.decoder = readMlp(bytes);
+      } catch (e) {
+        fail(`${where}, decoder: ${e.message}`);
+      }
+      const { inputWidth, outputWidth } = out.decoder;
+      if (inputWidth !== s.channels + 3 || outputWidth !== 3) {
+        fail(`${where}: segment: the decoder maps ${inputWidth} -> ${outputWidth} channels; with ${s.channels} features `
+          + `it must map ${s.channels + 3} -> 3`);
+      }
+    }
+    return out;
+  });
+  s.decoded = decoded;
+  return decoded;
+}
+
+/** A data section held in memory: `bytes` is the whole file. */
+export function fileSection(bytes, headerLength) {
+  const start = PREFIX_SIZE + headerLength, length = bytes.length - 32 - start;
+  return { length, bytes: (offset, n) => bytes.subarray(start + offset, start + offset + n) };
+}
+
+/** Read a whole file: prefix, checksum, header, every segment. Throws FormatError naming `name`. */
+export async function readStg(bytes, name = "<bytes>", limits = DEFAULT_LIMITS) {
+  const { headerLength } = named(name, () => {
+    const prefix = readPrefix(bytes);
+    if (bytes.length < PREFIX_SIZE + prefix.headerLength + 32) {
+      fail(`truncated: header says ${prefix.headerLength} header bytes, file has ${bytes.length} bytes in all`);
+    }
+    return prefix;
+  });
+  await namedAsync(name, () => verifyChecksum(bytes));
+  const model = parseHeader(bytes.subarray(PREFIX_SIZE, PREFIX_SIZE + headerLength), bytes.length, name, limits);
+  const section = fileSection(bytes, headerLength);
+  for (let i = 0; i < model.segments.length; i++) await decodeSegment(model, i, section);
+  return model;
+}
+
+/** The segment index showing time t (seconds) and its normalised time tau (formats/stg-v1.md, section 2). */
+export function segmentAt(model, t) {
+  const frame = Math.floor(t * model.fps + 1e-9);
+  let i = 0;
+  while (i < model.segments.length - 1 && frame >= model.segments[i].startFrame + model.segments[i].numFrames) i++;
+  const s = model.segments[i];
+  return { index: i, tau: (t - s.startFrame / model.fps) / (s.numFrames / model.fps) };
+}

@@ -1,0 +1,126 @@
+"""The web player's .stg reader (stg_runtime/web/stg-format.js, onnx-mlp.js) against the Python reader, run
+in node: every test vector decodes to the same float32 arrays, decoder layers and cameras; every
+malicious fixture is refused for the reason tests/runtime/malicious/index.json names (or loads where the
+Python reader loads it); fuzzed files the Python reader refuses are refused. The same reader runs in the
+page (tests/web/test_page.py shows the messages there)."""
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from stg_runtime import FormatError
+from stg_runtime import format as stg_format
+from stg_runtime.onnx_mlp import read_mlp
+
+NODE = shutil.which("node")
+pytestmark = pytest.mark.skipif(NODE is None, reason="needs node (the reader's unit tests run in node 18+)")
+
+ROOT = Path(__file__).resolve().parents[2]
+HERE = Path(__file__).resolve().parent
+VECTORS = sorted((ROOT / "formats" / "vectors").glob("*.stg"))
+MALICIOUS = ROOT / "tests" / "runtime" / "malicious"
+
+
+def read_with_js(path: Path, out: Path) -> dict:
+    subprocess.run([NODE, str(HERE / "read_stg.mjs"), str(path), str(out)], check=True, timeout=60)
+    return json.loads((out / "meta.json").read_text())
+
+
+@pytest.mark.parametrize("path", VECTORS, ids=lambda p: p.stem)
+def test_vectors_decode_as_in_python(path, tmp_path):
+    meta = read_with_js(path, tmp_path)
+    assert "error" not in meta, meta
+    model = stg_format.load(path)
+    assert (meta["kind"], meta["fps"], meta["num_frames"]) == (model.kind, model.fps, model.num_frames)
+    assert len(meta["cameras"]) == len(model.cameras)
+    for js, cam in zip(meta["cameras"], model.cameras):
+        assert (js["width"], js["height"], js["model"]) == (cam.width, cam.height, cam.model)
+        np.testing.assert_array_equal(js["worldToCamera"], cam.world_to_camera.ravel())
+        np.testing.assert_array_equal([js["fx"], js["fy"], js["cx"], js["cy"]], [cam.fx, cam.fy, cam.cx, cam.cy])
+    assert len(meta["segments"]) == len(model.segments)
+    for i, (js, seg) in enumerate(zip(meta["segments"], model.segments)):
+        assert (js["start_frame"], js["num_frames"], js["count"]) == (seg.start_frame, seg.num_frames, seg.count)
+        for name, values in seg.arrays().items():
+            got = np.fromfile(tmp_path / f"seg{i}_{name}.f32", "<f4")
+            np.testing.assert_array_equal(got, values.ravel(), err_msg=f"segment {i}, {name}")
+        if seg.decoder is None:
+            assert js["layers"] is None
+            continue
+        mlp = read_mlp(seg.decoder)
+        assert js["activation"] == seg.activation
+        assert [tuple(layer) for layer in js["layers"]] == [(*w.shape, b is not None)
+                                                            for w, b in zip(mlp.weights, mlp.biases)]
+        for k, (w, b) in enumerate(zip(mlp.weights, mlp.biases)):
+            np.testing.assert_array_equal(np.fromfile(tmp_path / f"seg{i}_w{k}.f32", "<f4"), w.ravel())
+            if b is not None:
+                np.testing.assert_array_equal(np.fromfile(tmp_path / f"seg{i}_b{k}.f32", "<f4"), b)
+
+
+def read_many(paths) -> dict[str, dict]:
+    out = subprocess.run([NODE, str(HERE / "read_many.mjs"), *map(str, paths)], capture_output=True, text=True,
+                         timeout=300, check=True)
+    return {Path(r["file"]).name: r for r in map(json.loads, out.stdout.splitlines())}
+
+
+def test_malicious_files_are_refused_for_the_python_reason():
+    index = json.loads((MALICIOUS / "index.json").read_text())
+    results = read_many(sorted(MALICIOUS.glob("*.stg")))
+    assert sorted(results) == sorted(index)
+    for name, expect in index.items():
+        got = results[name]
+        if expect["expect"] == "loads":
+            assert got["ok"], got
+            continue
+        assert not got["ok"] and got["type"] == "FormatError", got
+        assert got["error"].startswith(name + ": ") and re.search(expect["match"], got["error"]), got
+
+
+def test_damaged_files_are_refused(tmp_path):
+    data = (ROOT / "formats" / "vectors" / "full.stg").read_bytes()
+    cases = {"cut.stg": data[:-100], "flipped.stg": data[:300] + bytes([data[300] ^ 1]) + data[301:],
+             "empty.stg": b"", "magic.stg": b"PK" + data[2:], "version.stg": data[:8] + b"\x02\x00" + data[10:]}
+    for name, payload in cases.items():
+        (tmp_path / name).write_bytes(payload)
+    results = read_many(sorted(tmp_path.glob("*.stg")))
+    for name in cases:
+        with pytest.raises(FormatError) as info:
+            stg_format.load(tmp_path / name)
+        python = str(info.value).split(": ", 1)[1]
+        assert not results[name]["ok"] and results[name]["error"] == f"{name}: {python}", (results[name], python)
+
+
+def test_fuzzed_files_refused_by_python_are_refused(tmp_path):
+    sys.path.insert(0, str(ROOT / "tools"))
+    try:
+        from fuzz import mutate_stg
+    finally:
+        sys.path.remove(str(ROOT / "tools"))
+    rng = np.random.default_rng(11)
+    bases = [p.read_bytes() for p in VECTORS]
+    expected = {}
+    for k in range(300):
+        how, data = mutate_stg(bases[k % len(bases)], rng)
+        path = tmp_path / f"f{k:03d}.stg"
+        path.write_bytes(data)
+        try:
+            stg_format.load(path)
+            expected[path.name] = None
+        except FormatError as e:
+            expected[path.name] = str(e)
+    results = read_many(sorted(tmp_path.glob("*.stg")))
+    refused = [n for n, e in expected.items() if e is not None]
+    assert len(refused) > 100
+    for name in refused:
+        assert not results[name]["ok"] and results[name]["type"] == "FormatError", (name, expected[name], results[name])
+        assert results[name]["error"].startswith(name + ": ")
+    accepted = [n for n, e in expected.items() if e is None]
+    # the one known difference: JSON's NaN / Infinity literals, which Python's json reads and JSON.parse refuses
+    differ = [n for n in accepted if not results[n]["ok"] and "JSON" not in results[n]["error"]]
+    assert not differ, [results[n] for n in differ]
