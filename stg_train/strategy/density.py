@@ -5,6 +5,9 @@ from 500 every 100 iterations for 6 rounds (gradient threshold 2e-4 in NDC units
 split into 2 with scale / 1.6, cloned and split Gaussians get a random temporal centre), prune opacity
 < 0.005 every 100 iterations until 7k, opacity reset to <= 0.01 every 3000 until 9k, Gaussians outside
 the initial box removed at 10k. Schedule.scaled(total) maps these onto a run of `total` iterations.
+The gradient statistic is gsplat's (per view, independent of the batch size; the reference's, one
+view per backward, has the same mean); docs/training.md has the deviations from the reference and
+their measurements.
 """
 from __future__ import annotations
 
@@ -19,6 +22,10 @@ from ..render.torch_splat import quat_to_rotmat
 from .base import StepContext, Strategy
 from .ops import append_gaussians, keep_gaussians, set_values
 from .schedule import Schedule
+
+
+#: Thresholds.grad_statistic values.
+GRAD_STATISTICS = ("per-view", "summed")
 
 
 @dataclass(frozen=True)
@@ -40,6 +47,19 @@ class Thresholds:
     # centre, so that they keep their parent's trajectory (False: xyz and the coefficients stay, which
     # shifts the trajectory in time by the change of centre, as the reference does)
     recentre: bool = False
+    # the densification statistic (DensityControl.accumulate): "per-view" (gsplat's default strategy:
+    # each view's gradient norm, the loss's 1 / B undone, averaged over the views that see the Gaussian;
+    # the same at every batch size) or "summed" (before 2026-12: the batch's gradient vectors summed,
+    # then normed, once per step; up to B times stricter; kept for ablations)
+    grad_statistic: str = "per-view"
+    # densification steps also prune (low opacity, and after the first reset too big); False: they only
+    # clone and split, as the reference's densify_pruneclone (which builds its prune mask and never
+    # applies it); the separate prune steps act either way
+    prune_at_densify: bool = True
+
+    def __post_init__(self):
+        if self.grad_statistic not in GRAD_STATISTICS:
+            raise ValueError(f"grad_statistic must be one of {GRAD_STATISTICS}, got {self.grad_statistic!r}")
 
 
 def recentred(raw: dict[str, Tensor], t_center: Tensor) -> dict[str, Tensor]:
@@ -67,8 +87,8 @@ class DensityControl(Strategy):
     def __init__(self, schedule: Schedule, extent: float, thresholds: Thresholds = Thresholds(), box=None):
         self.schedule, self.thresholds, self.extent = schedule, thresholds, float(extent)
         self.box = None if box is None else torch.as_tensor(box, dtype=torch.float32).reshape(2, 3)
-        self.grad_sum = torch.zeros(0)  # (N,) sum of per-step NDC gradient norms
-        self.grad_count = torch.zeros(0)  # (N,) steps in which the Gaussian was visible
+        self.grad_sum = torch.zeros(0)  # (N,) sum of NDC gradient norms (Thresholds.grad_statistic)
+        self.grad_count = torch.zeros(0)  # (N,) views (per-view) or steps (summed) that saw the Gaussian
         self.max_radius = torch.zeros(0)  # (N,) largest screen radius (pixels) since the last refine
         self.rounds_done = 0
         self.log: list[dict] = []  # one entry per refine step (counts), for reports
@@ -86,28 +106,39 @@ class DensityControl(Strategy):
 
     def accumulate(self, renders: list, present=None) -> None:
         """Add one step's statistics. renders: (camera, splat.RenderOutput) for every view of the batch;
-        the per-view screen gradients are summed (the loss averages the views), then normed. present:
-        optional (N,) bool on the CPU, the Gaussians that exist at the step's time (others do not count)."""
-        grad, seen, radius = None, None, None
-        for camera, out in renders:
-            g = out.means2d.grad
-            if g is None:
-                continue
-            g = g.detach().cpu().reshape(-1, 2) * torch.tensor([camera.width / 2.0, camera.height / 2.0])  # px -> NDC
-            vis = out.visible.detach().cpu()
-            r = out.radii.detach().cpu().float()
-            grad = g if grad is None else grad + g
-            seen = vis if seen is None else seen | vis
-            radius = r if radius is None else torch.maximum(radius, r)
-        if grad is None:
+        present: optional (N,) bool on the CPU, the Gaussians that exist at the step's time (others do
+        not count).
+
+        Screen gradients are converted from pixels to NDC units (x W/2, H/2). With grad_statistic
+        "per-view" (gsplat's default strategy) each view's gradient is multiplied by the number of views
+        B, which undoes the loss's mean over the batch, then normed; the norm is added, and the count
+        raised, for every view that sees the Gaussian. A Gaussian that every view sees with the same
+        full-size-loss gradient g then averages |g| at any batch size, as the reference's statistic
+        (one backward per view, the last view's |g|) does. "summed": the views' gradient vectors are
+        added first and normed once per step (the old statistic; see Thresholds)."""
+        views = [(camera, out) for camera, out in renders if out.means2d.grad is not None]
+        if not views:
             return
-        self._fit(grad.shape[0])
-        norm = grad.norm(dim=-1)
-        if present is not None:
-            seen = seen & present
-        self.grad_sum[seen] += norm[seen]
-        self.grad_count[seen] += 1
-        self.max_radius[seen] = torch.maximum(self.max_radius[seen], radius[seen])
+        per_view = self.thresholds.grad_statistic == "per-view"
+        summed, seen_any = None, None
+        for camera, out in views:
+            scale = torch.tensor([camera.width / 2.0, camera.height / 2.0]) * (len(renders) if per_view else 1)
+            g = out.means2d.grad.detach().cpu().reshape(-1, 2) * scale  # px -> NDC
+            seen = out.visible.detach().cpu()
+            self._fit(g.shape[0])
+            if present is not None:
+                seen = seen & present
+            r = out.radii.detach().cpu().float()
+            self.max_radius[seen] = torch.maximum(self.max_radius[seen], r[seen])
+            if per_view:
+                self.grad_sum[seen] += g.norm(dim=-1)[seen]
+                self.grad_count[seen] += 1
+            else:
+                summed = g if summed is None else summed + g
+                seen_any = seen if seen_any is None else seen_any | seen
+        if not per_view:
+            self.grad_sum[seen_any] += summed.norm(dim=-1)[seen_any]
+            self.grad_count[seen_any] += 1
 
     # -- the plug-in entry point ------------------------------------------------------------------------
     def step_post_backward(self, params: STGParams, optimizer: torch.optim.Optimizer, step: int,
@@ -198,7 +229,8 @@ class DensityControl(Strategy):
             new["t_center"] = t_center
         append_gaussians(params, optimizer, new)
         self._fit(params.count)  # the new Gaussians have no statistics yet
-        prune = self._prune_mask(params, step, big=True)
+        prune = (self._prune_mask(params, step, big=True) if th.prune_at_densify
+                 else torch.zeros(params.count, dtype=torch.bool))
         prune[:n] |= split  # split parents go
         self._keep(params, optimizer, (~prune).to(dev))
         self._reset_stats(params.count)

@@ -30,18 +30,26 @@ class Schedule:
         about 3x that have none). Guided sampling starts where the reference's does relative to density
         control (its 1600 = refine_start + (densify_rounds + 5) refine periods, after the densification
         rounds, once the loss is stable), or at the scaled 1600 if later; its samplings are a refine
-        period apart. A 30k-iteration run gets exactly the reference schedule. Keyword overrides
-        replace single fields (they do not move the other fields)."""
+        period apart. Nothing is added in the last two thirds of a run, as in the reference (its last
+        Gaussians come at 1700 of 30000): densification rounds and guided sampling that would start
+        after `total` // 3 are dropped, so a short run does not end on untrained new Gaussians (a
+        100-step run densified at its last step lost 2.4 dB held-out, docs/training.md). A 30k-iteration
+        run gets exactly the reference schedule. Keyword overrides replace single fields (they do not
+        move the other fields)."""
         f = total / reference_total
         ref = cls()
         start = max(min_start, round(ref.refine_start * f))
         every = max(min_every, round(ref.refine_every * f))
+        last = total // 3  # the last step that may add Gaussians
+        first_refine = (start // every + 1) * every
+        rounds = min(ref.densify_rounds, max(0, (last - first_refine) // every + 1))
+        guided_start = max(round(ref.guided_start * f), start + (ref.densify_rounds + 5) * every)
         sched = cls(refine_start=start, refine_every=every,
-                    densify_rounds=ref.densify_rounds,
+                    densify_rounds=rounds,
                     prune_until=round(ref.prune_until * f),
                     reset_every=max(min_reset_every, round(ref.reset_every * f)),
                     reset_until=round(ref.reset_until * f),
                     outside_at=round(ref.outside_at * f),
-                    guided_start=max(round(ref.guided_start * f), start + (ref.densify_rounds + 5) * every),
+                    guided_start=guided_start if guided_start <= last else total + 1,
                     guided_every=max(min_every, round(ref.guided_every * f)))
         return replace(sched, **overrides)

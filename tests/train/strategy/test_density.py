@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch")
+from torch import Tensor  # noqa: E402
 
 from stg_runtime.camera import Camera  # noqa: E402
 from stg_train.params import LearningRates, STGParams  # noqa: E402
@@ -72,17 +73,49 @@ def test_reset_opacity_caps_at_the_threshold():
     assert torch.all(opacity <= Thresholds().reset_opacity + 1e-7)
 
 
-def test_screen_gradients_are_summed_over_views_in_ndc_units():
+def test_screen_gradients_are_normed_per_view_in_ndc_units():
     params, optimizer, dc = _setup(n=3)
     camera = Camera(50, 50, 20, 15, 40, 30, np.eye(4))
     means2d = torch.zeros(3, 2, requires_grad=True)
     means2d.grad = torch.tensor([[1.0, 0.0], [0.0, 2.0], [0.0, 0.0]])
     out = RenderOutput(None, None, None, means2d, torch.tensor([3, 4, 0]), torch.tensor([True, True, False]))
     dc.accumulate([(camera, out), (camera, out)])
-    # pixels -> NDC: times (W/2, H/2); the two views' gradients add before the norm
-    torch.testing.assert_close(dc.grad_sum, torch.tensor([2 * 20.0, 2 * 2 * 15.0, 0.0]))
-    torch.testing.assert_close(dc.grad_count, torch.tensor([1.0, 1.0, 0.0]))
+    # pixels -> NDC: times (W/2, H/2); each view's gradient times the batch size 2, normed, counted per view
+    torch.testing.assert_close(dc.grad_sum, torch.tensor([2 * 2 * 20.0, 2 * 2 * 2 * 15.0, 0.0]))
+    torch.testing.assert_close(dc.grad_count, torch.tensor([2.0, 2.0, 0.0]))
     torch.testing.assert_close(dc.max_radius, torch.tensor([3.0, 4.0, 0.0]))
+
+
+def _statistic(batch: int, statistic: str) -> Tensor:
+    """The mean densification statistic of 2 Gaussians after one step whose loss is the mean over
+    `batch` views of a per-view loss that gives each Gaussian a screen gradient of norm 1 px, pointing
+    in another direction in each view (views are different image planes). The camera is square, so
+    1 px is 20 NDC units in every direction."""
+    params, optimizer, _ = _setup(n=2)
+    dc = DensityControl(Schedule(), 1.0, Thresholds(grad_statistic=statistic))
+    camera = Camera(50, 50, 20, 20, 40, 40, np.eye(4))
+    renders, losses = [], []
+    for v in range(batch):
+        angle = 2 * math.pi * v / batch
+        means2d = torch.zeros(2, 2, requires_grad=True)
+        losses.append((means2d * torch.tensor([math.cos(angle), math.sin(angle)])).sum())
+        renders.append((camera, RenderOutput(None, None, None, means2d, torch.ones(2), torch.ones(2, dtype=torch.bool))))
+    torch.stack(losses).mean().backward()  # as loss_fn: the mean over the batch's views
+    dc.accumulate(renders)
+    return dc.grad_sum / dc.grad_count
+
+
+@pytest.mark.parametrize("batch", [1, 2, 4])
+def test_the_statistic_does_not_depend_on_the_batch_size(batch):
+    # every view's full-size loss gives 1 px = 20 NDC units, as the reference's one-view backward does
+    torch.testing.assert_close(_statistic(batch, "per-view"), torch.tensor([20.0, 20.0]))
+
+
+def test_the_summed_statistic_shrinks_with_the_batch():
+    # the old statistic: the views' gradients, each 1 / B of a full one, cancel before the norm
+    assert float(_statistic(1, "summed")[0]) == pytest.approx(20.0)
+    assert float(_statistic(2, "summed")[0]) == pytest.approx(0.0, abs=1e-4)
+    assert float(_statistic(4, "summed")[0]) == pytest.approx(0.0, abs=1e-4)
 
 
 def test_the_schedule_decides_when_to_act():
