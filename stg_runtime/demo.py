@@ -1,4 +1,7 @@
-"""Procedural Spacetime Gaussian models: a built-in demo scene and random scenes for benchmarks.
+"""Procedural Spacetime Gaussian models: a built-in demo scene and benchmark scenes: random ones
+(`random_model`: small footprints of fixed pixel size, about one layer per pixel) and ones that load a
+splatter like a trained model (`like_trained_model`: footprints that scale with the image, dozens of
+faint layers per pixel).
 
 World frame: OpenCV-like, y down; the demo rig sits near the origin looking down +z.
 """
@@ -154,4 +157,80 @@ def random_model(num_gaussians: int, kind: str = "lite", seed: int = 0, width: i
                  fps: float = 30.0, radius_px=(0.5, 10.0)) -> Model:
     """random_segment wrapped in a Model whose one camera is bench_camera(width, height)."""
     seg = random_segment(num_gaussians, kind, seed, width=width, height=height, radius_px=radius_px)
+    return Model(kind, fps, [seg], cameras=[bench_camera(width, height)])
+
+
+#: What like_trained_model copies from a trained model (the demo's, `stg-train --demo`: 32k Gaussians,
+#: 1500 steps; its statistics are in docs/performance.md): Gaussians composited per pixel (their
+#: summed footprints cover the image about this many times; few pixels stop, the Gaussians being
+#: faint), the spread of the footprints' areas (log-normal: sigma of log area; the trained model's
+#: tail is thinner than a log-normal's, so this is a compromise between its median and its mean), the
+#: opacity's logit-normal distribution (mean, sigma) and the temporal scale's log-normal one
+#: (median, sigma).
+TRAINED_LAYERS = 50.0
+TRAINED_AREA_SIGMA = 1.5
+TRAINED_OPACITY_LOGIT = (-1.8, 1.95)
+TRAINED_T_SCALE = (0.5, 2.8)
+#: The fraction of the Gaussians gathered around _OBJECTS objects (the rest are uniform over the
+#: image), which makes some pixels deeper than others, as in a trained model (99th percentile of the
+#: layers about 1.6 times their mean).
+TRAINED_CLUSTERED = 0.15
+_OBJECTS = 8
+#: Calibrated with render_load so that the layers per pixel come out at `layers`: the pixels a
+#: Gaussian reaches (alpha >= 1/255 within 3 sigma, in the image) over pi sigma_px^2, averaged over the
+#: scene's distributions, with the Gaussians that reach no pixel at the time counted in.
+_AREA_PER_SIGMA2 = 6.9
+
+
+def like_trained_segment(num_gaussians: int, width: int = 640, height: int = 360, kind: str = "lite",
+                         seed: int = 0, num_frames: int = 50, layers: float = TRAINED_LAYERS) -> Segment:
+    """A scene for benchmarks that loads a splatter like a trained model, seen by
+    `bench_camera(width, height)`: centres uniform over the image (10 % beyond each edge) at depths
+    uniform in [2, 10]; footprint areas log-normal (TRAINED_AREA_SIGMA), scaled so that the footprints
+    of all Gaussians cover the image `layers` times: a fixed fraction of the image whatever its
+    resolution (footprints grow with it) and smaller as the count grows (as a model trained with more
+    Gaussians has smaller ones); opacities and temporal scales distributed as a trained model's
+    (TRAINED_OPACITY_LOGIT, TRAINED_T_SCALE), temporal centres uniform; per-axis anisotropy in [0.5, 2],
+    random rotations, a little motion. Features uniform in [0, 1] (3 lite, 9 full with a random
+    decoder)."""
+    rng = np.random.default_rng(seed)
+    n = num_gaussians
+    fx = bench_camera(width, height).fx
+    z = rng.uniform(2.0, 10.0, n)
+    u = rng.uniform(-0.05, 1.05, n)
+    v = rng.uniform(-0.05, 1.05, n)
+    objects = rng.uniform(size=n) < TRAINED_CLUSTERED  # the rest gathered around a few objects
+    centres = rng.uniform(0.1, 0.9, (_OBJECTS, 2))[rng.integers(0, _OBJECTS, objects.sum())]
+    u[objects], v[objects] = (centres + 0.08 * rng.standard_normal(centres.shape)).T
+    u, v = u * width, v * height
+    x = (u - width / 2) * z / fx
+    y = (v - height / 2) * z / fx
+    # Log-normal areas pi sigma_px^2 whose mean times n covers the image layers / _AREA_PER_SIGMA2 times.
+    mean_sigma2 = layers * width * height / (n * np.pi * _AREA_PER_SIGMA2)
+    log_area = rng.normal(0.0, TRAINED_AREA_SIGMA, n)
+    sigma_px = np.sqrt(mean_sigma2 * np.exp(log_area - TRAINED_AREA_SIGMA ** 2 / 2))
+    scale = (sigma_px * z / fx)[:, None] * np.exp(rng.uniform(np.log(0.5), np.log(2.0), (n, 3)))
+    position = np.zeros((n, 4, 3))
+    position[:, 0] = np.stack([x, y, z], 1)
+    position[:, 1:] = 0.05 * rng.standard_normal((n, 3, 3))
+    rotation = np.zeros((n, 2, 4))
+    rotation[:, 0] = rng.standard_normal((n, 4))
+    rotation[:, 1] = 0.2 * rng.standard_normal((n, 4))
+    mu, sd = TRAINED_OPACITY_LOGIT
+    opacity = 1.0 / (1.0 + np.exp(-rng.normal(mu, sd, n)))
+    t_scale = TRAINED_T_SCALE[0] * np.exp(rng.normal(0.0, TRAINED_T_SCALE[1], n))
+    channels = 9 if kind == "full" else 3
+    decoder = None
+    if kind == "full":
+        decoder = mlp_to_onnx([rng.standard_normal((6, 12)).astype(np.float32) * 0.3,
+                               rng.standard_normal((3, 6)).astype(np.float32) * 0.3])
+    return Segment(0, num_frames, opacity=opacity, t_center=rng.uniform(0, 1, n), t_scale=t_scale,
+                   position=position, rotation=rotation, scale=scale, features=rng.uniform(0, 1, (n, channels)),
+                   decoder=decoder, activation="sigmoid")
+
+
+def like_trained_model(num_gaussians: int, width: int = 640, height: int = 360, kind: str = "lite",
+                       seed: int = 0, fps: float = 30.0, layers: float = TRAINED_LAYERS) -> Model:
+    """like_trained_segment wrapped in a Model whose one camera is bench_camera(width, height)."""
+    seg = like_trained_segment(num_gaussians, width, height, kind, seed, layers=layers)
     return Model(kind, fps, [seg], cameras=[bench_camera(width, height)])

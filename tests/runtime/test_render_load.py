@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stg_runtime.demo import random_model
+from stg_runtime.demo import TRAINED_LAYERS, like_trained_model, random_model
 from stg_runtime.render_load import render_load, scene_load
 from stg_runtime.spec import MAX_ALPHA, MIN_ALPHA, T_STOP, project_oracle
 from stg_runtime.timeeval import evaluate
@@ -84,3 +84,22 @@ def test_scene_load_evaluates_time():
     got = scene_load(model, cam, t)
     np.testing.assert_array_equal(got.layers, expected.layers)
     assert got.as_dict() == expected.as_dict() and "layers/pixel" in got.summary()
+
+
+def test_like_trained_scene_scales_with_resolution():
+    """like_trained_model: the layers per pixel stay near TRAINED_LAYERS at any resolution and count,
+    and the footprints grow with the image (4x the pixels, about 4x the area), unlike random_model's."""
+    loads = {}
+    for n, (w, h) in [(20000, (320, 180)), (20000, (640, 360)), (60000, (640, 360))]:
+        model = like_trained_model(n, w, h, seed=2)
+        loads[n, w] = scene_load(model, model.cameras[0], 0.5 * model.duration)
+    for load in loads.values():
+        assert 0.8 * TRAINED_LAYERS < load.mean_layers < 1.25 * TRAINED_LAYERS
+        assert 1.3 < load.p99_layers / load.mean_layers < 2.2
+        assert load.in_view > 0.8 * load.total
+    assert 3.3 < loads[20000, 640].mean_footprint / loads[20000, 320].mean_footprint < 4.7
+    assert 2.5 < loads[20000, 640].mean_footprint / loads[60000, 640].mean_footprint < 3.5
+    small, large = (random_model(20000, width=w, height=h) for w, h in [(320, 180), (640, 360)])
+    ratio = (scene_load(large, large.cameras[0], 0.5).mean_footprint
+             / scene_load(small, small.cameras[0], 0.5).mean_footprint)
+    assert ratio < 1.5
