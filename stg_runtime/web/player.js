@@ -1,0 +1,224 @@
+// StgPlayer: a .stg model played in a <canvas> with WebGL2; the API the page, embedders and the tests use.
+//
+//   const player = new StgPlayer(canvas, {onStatus, onError});
+//   await player.load(url | ArrayBuffer | Uint8Array | Blob, name?)   reads the file (stg-format.js)
+//   player.setCamera(cam)      cam: one entry of a camera-path JSON file (stg_runtime.camera.save_camera_path),
+//                              i.e. a camera object of formats/stg-v1.md; the canvas takes its width x height
+//   player.setTime(seconds)    clamped to the model's span
+//   await player.snapshot()    ImageData (RGBA, top row first) of a complete frame at the camera's own
+//                              size, rendered once the depth order for that camera and time is sorted
+//   player.play(), pause(), speed, loop, time, camera (JSON), cameras (the file's, JSON), fps (measured)
+//
+// Each displayed frame uses the latest depth order the sort worker returned: it may be a few frames old
+// while the view or the time changes (docs/web.md, "Sorting"); snapshot() always waits for its own.
+
+import { DEFAULT_LIMITS, FormatError, PREFIX_SIZE, decodeSegment, fileSection, parseCamera, parseHeader, readPrefix,
+  readStg, segmentAt, verifyChecksum } from "./stg-format.js";
+import { Renderer } from "./renderer.js";
+
+function cameraJson(c) {
+  const intr = { fx: c.fx, fy: c.fy, cx: c.cx, cy: c.cy };
+  const base = { name: c.name, width: c.width, height: c.height };
+  if (c.model === "fisheye") {
+    return { ...base, model: "fisheye", intrinsics: { ...intr, k1: c.k[0], k2: c.k[1], k3: c.k[2], k4: c.k[3] },
+      world_to_camera: c.worldToCamera.slice() };
+  }
+  return { ...base, ...intr, world_to_camera: c.worldToCamera.slice() };
+}
+
+export class StgPlayer {
+  constructor(canvas, { onStatus = () => {}, onError = () => {}, onFrame = () => {}, limits = DEFAULT_LIMITS } = {}) {
+    this.canvas = canvas;
+    this.onStatus = onStatus;
+    this.onError = onError;
+    this.onFrame = onFrame;
+    this.limits = limits;
+    this.renderer = new Renderer(canvas);
+    this.worker = new Worker(new URL("./sort-worker.js", import.meta.url), { type: "module" });
+    this.worker.onmessage = (e) => this.sorted(e.data);
+    this.worker.onerror = (e) => this.fail(new Error(`the sort worker failed: ${e.message}`));
+    this.model = null;
+    this.gpu = new Map();           // segment index -> uploaded segment
+    this.pending = new Map();       // sort id -> resolve
+    this.nextId = 1;
+    this.inFlight = 0;
+    this.sortedFor = null;          // the key of the last sort requested for display
+    this.cam = null;
+    this.t = 0;
+    this.playing = false;
+    this.speed = 1;
+    this.loop = true;
+    this.fps = 0;
+    this.sortMs = 0;
+    this.frames = 0;
+    this.fpsStart = performance.now();
+    this.lastTick = null;
+    this.error = null;
+    this.stats = {};
+    this.raf = requestAnimationFrame((now) => this.tick(now));
+  }
+
+  fail(error) {
+    this.error = error.message;
+    this.playing = false;
+    this.onError(error.message);
+    return error;
+  }
+
+  /** Read a model: a URL (fetched), or the file's bytes. Rejects (and calls onError) with a readable message. */
+  async load(source, name) {
+    const started = performance.now();
+    try {
+      this.reset();
+      let bytes;
+      if (typeof source === "string") {
+        name = name || decodeURIComponent(new URL(source, location.href).pathname.split("/").pop() || source);
+        this.onStatus(`fetching ${name}`);
+        const response = await fetch(source);
+        if (!response.ok) throw new FormatError(`${name}: HTTP ${response.status} ${response.statusText}`);
+        bytes = new Uint8Array(await response.arrayBuffer());
+      } else if (source instanceof Blob) {
+        name = name || source.name || "<file>";
+        bytes = new Uint8Array(await source.arrayBuffer());
+      } else {
+        bytes = source instanceof Uint8Array ? source : new Uint8Array(source);
+        name = name || "<bytes>";
+      }
+      this.stats.bytes = bytes.length;
+      this.onStatus(`reading ${name}`);
+      const model = await readStg(bytes, name, this.limits);
+      this.model = model;
+      this.stats.loadMs = performance.now() - started;
+      this.t = model.startTime;
+      if (model.cameras.length) this.cam = model.cameras[0];
+      else this.cam = this.defaultCamera(model);
+      this.onStatus(`${name}: ${model.kind}, ${model.segments.length} segment(s), ${model.segments.reduce((n, s) => n + s.count, 0)} Gaussians`);
+      return this.info();
+    } catch (e) {
+      throw this.fail(e);
+    }
+  }
+
+  reset() {
+    for (const gpu of this.gpu.values()) this.renderer.release(gpu);
+    this.gpu.clear();
+    this.model = null;
+    this.error = null;
+    this.sortedFor = null;
+    for (let i = 0; i < 4096; i++) this.worker.postMessage({ type: "forget", key: i });
+  }
+
+  defaultCamera(model) {
+    const b = model.bounds || { min: [-1, -1, -1], max: [1, 1, 1] };
+    const c = [0, 1, 2].map((k) => 0.5 * (b.min[k] + b.max[k]));
+    const r = Math.max(...[0, 1, 2].map((k) => b.max[k] - b.min[k]), 1e-3);
+    return { name: "default", width: 640, height: 360, fx: 500, fy: 500, cx: 320, cy: 180, model: "pinhole", k: [0, 0, 0, 0],
+      worldToCamera: [1, 0, 0, -c[0], 0, 1, 0, -c[1], 0, 0, 1, -c[2] + 1.5 * r, 0, 0, 0, 1] };
+  }
+
+  info() {
+    const m = this.model;
+    return { name: m.name, kind: m.kind, fps: m.fps, numFrames: m.numFrames, startTime: m.startTime, duration: m.duration,
+      segments: m.segments.length, gaussians: m.segments.map((s) => s.count), cameras: this.cameras };
+  }
+
+  get cameras() { return this.model ? this.model.cameras.map(cameraJson) : []; }
+  get camera() { return this.cam ? cameraJson(this.cam) : null; }
+  get time() { return this.t; }
+  get endTime() { return this.model ? this.model.startTime + this.model.duration : 0; }
+
+  /** cam: a camera object of formats/stg-v1.md (one entry of a camera-path JSON file). */
+  setCamera(cam) {
+    this.cam = parseCamera(cam, this.limits);
+  }
+
+  /** The pose part of the camera only (the controls): worldToCamera, 16 numbers row-major. */
+  setPose(worldToCamera) {
+    this.cam = { ...this.cam, worldToCamera: worldToCamera.slice() };
+  }
+
+  setTime(seconds) {
+    if (!this.model) return;
+    this.t = Math.min(Math.max(Number(seconds), this.model.startTime), this.endTime);
+  }
+
+  play() { this.playing = true; }
+  pause() { this.playing = false; }
+
+  /** The uploaded segment showing the current time (uploading it on first use), and tau. */
+  current() {
+    const { index, tau } = segmentAt(this.model, this.t);
+    if (!this.gpu.has(index)) {
+      const s = this.model.segments[index];
+      this.gpu.set(index, this.renderer.upload(this.model, index));
+      this.worker.postMessage({ type: "segment", key: index, count: s.count, positionDegree: s.positionDegree,
+        opacity: s.decoded.opacity, t_center: s.decoded.t_center, t_scale: s.decoded.t_scale, position: s.decoded.position });
+    }
+    return { gpu: this.gpu.get(index), index, tau };
+  }
+
+  requestSort(index, tau) {
+    const id = this.nextId++;
+    const m = this.cam.worldToCamera;
+    this.worker.postMessage({ type: "sort", id, key: index, tau, R: [m[0], m[1], m[2], m[4], m[5], m[6], m[8], m[9], m[10]],
+      t: [m[3], m[7], m[11]] });
+    return id;
+  }
+
+  sorted(result) {
+    this.sortMs = result.sortMs;
+    const gpu = this.gpu.get(result.key);
+    if (gpu && (!gpu.orderId || result.id > gpu.orderId)) {
+      this.renderer.setOrder(gpu, result.order);
+      gpu.orderId = result.id;
+    }
+    const resolve = this.pending.get(result.id);
+    if (resolve) { this.pending.delete(result.id); resolve(result); } else this.inFlight = 0;
+  }
+
+  /** ImageData of a complete frame at the camera's own size, sorted for exactly this camera and time. */
+  async snapshot() {
+    if (!this.model) throw new Error("no model loaded");
+    const { gpu, index, tau } = this.current();
+    const cam = this.cam;
+    const id = this.requestSort(index, tau);
+    const result = await new Promise((resolve) => this.pending.set(id, resolve));
+    this.renderer.setOrder(gpu, result.order);
+    gpu.orderId = Math.max(gpu.orderId || 0, id);
+    const pixels = this.renderer.draw(gpu, cam, tau, "pixels");
+    return new ImageData(new Uint8ClampedArray(pixels.buffer), cam.width, cam.height);
+  }
+
+  tick(now) {
+    this.raf = requestAnimationFrame((n) => this.tick(n));
+    if (!this.model || this.error || !this.cam) { this.lastTick = now; return; }
+    try {
+      if (this.playing && this.lastTick !== null) {
+        let t = this.t + ((now - this.lastTick) / 1000) * this.speed;
+        if (t > this.endTime) {
+          if (this.loop) t = this.model.startTime + ((t - this.model.startTime) % this.model.duration);
+          else { t = this.endTime; this.playing = false; }
+        }
+        this.t = t;
+      }
+      this.lastTick = now;
+      const { gpu, index, tau } = this.current();
+      const key = `${index} ${tau} ${this.cam.worldToCamera.join(",")}`;
+      if (key !== this.sortedFor && !this.inFlight) {
+        this.sortedFor = key;
+        this.inFlight = this.requestSort(index, tau);
+      }
+      if (!gpu.orderId) return;
+      this.renderer.draw(gpu, this.cam, tau, "canvas");
+      this.frames++;
+      if (now - this.fpsStart >= 1000) {
+        this.fps = (1000 * this.frames) / (now - this.fpsStart);
+        this.frames = 0;
+        this.fpsStart = now;
+      }
+      this.onFrame(this);
+    } catch (e) {
+      this.fail(e);
+    }
+  }
+}

@@ -1,0 +1,240 @@
+// WebGL2 rendering of one segment at one time from one camera (formats/stg-v1.md, sections 2-3): the
+// Gaussians' data in a float texture, one instanced quad per Gaussian in the worker's depth order,
+// features splatted front to back into float render targets, then the colour pass (shaders.js).
+//
+//   new Renderer(canvas)                  throws Error with a readable message without WebGL2 or float targets
+//   renderer.upload(model, i) -> gpu      segment i's textures and programs (model from stg-format.js)
+//   renderer.setOrder(gpu, order)         the instance order (Uint32Array of Gaussian indices, nearest first)
+//   renderer.draw(gpu, camera, tau, target) target "canvas" or "pixels" (then returns Uint8Array RGBA,
+//                                          top row first, camera.width x camera.height)
+
+import { DATA_WIDTH, WEIGHTS_WIDTH, dataLayout, splatShaders, colourShaders, mlpWeights } from "./shaders.js";
+
+/** The largest angle off the axis a fisheye sees: the first zero of d theta_d / d theta, or pi. */
+export function fisheyeMaxAngle(k) {
+  const slope = (t) => { const t2 = t * t; return 1 + t2 * (3 * k[0] + t2 * (5 * k[1] + t2 * (7 * k[2] + t2 * 9 * k[3]))); };
+  const steps = 4096;
+  for (let s = 1; s <= steps; s++) {
+    let lo = (Math.PI * (s - 1)) / steps, hi = (Math.PI * s) / steps;
+    if (slope(hi) <= 0) {
+      for (let it = 0; it < 60; it++) { const m = 0.5 * (lo + hi); if (slope(m) > 0) lo = m; else hi = m; }
+      return hi;
+    }
+  }
+  return Math.PI;
+}
+
+/** The uniforms every pass takes for `camera` (a camera of stg-format.js). */
+export function cameraUniforms(camera) {
+  const m = camera.worldToCamera, W = camera.width, H = camera.height;
+  const R = [m[0], m[1], m[2], m[4], m[5], m[6], m[8], m[9], m[10]], t = [m[3], m[7], m[11]];
+  const center = [0, 1, 2].map((j) => -(R[j] * t[0] + R[3 + j] * t[1] + R[6 + j] * t[2]));
+  const tx = (0.3 * W) / (2 * camera.fx), ty = (0.3 * H) / (2 * camera.fy);
+  const fisheye = camera.model === "fisheye";
+  return { R, t, center, intr: [camera.fx, camera.fy, camera.cx, camera.cy], size: [W, H],
+    lim: [-(camera.cx / camera.fx + tx), (W - camera.cx) / camera.fx + tx, -(camera.cy / camera.fy + ty), (H - camera.cy) / camera.fy + ty],
+    fisheye: fisheye ? 1 : 0, k: camera.k, maxAngle: fisheye ? fisheyeMaxAngle(camera.k) : Math.PI / 2 };
+}
+
+export class Renderer {
+  constructor(canvas) {
+    const gl = canvas.getContext("webgl2", { antialias: false, alpha: false, depth: false, stencil: false,
+      premultipliedAlpha: false, preserveDrawingBuffer: false });
+    if (!gl) throw new Error("this browser has no WebGL2: the player needs it (any browser of the last years has it)");
+    if (!gl.getExtension("EXT_color_buffer_float")) {
+      throw new Error("this browser's WebGL2 cannot render to float textures (EXT_color_buffer_float): the player needs it");
+    }
+    this.floatBlend = !!gl.getExtension("EXT_float_blend");
+    this.featureFormat = this.floatBlend ? gl.RGBA32F : gl.RGBA16F;  // 16-bit floats blend without the extension
+    this.gl = gl;
+    this.canvas = canvas;
+    this.programs = new Map();
+    this.targets = null;
+    this.maxTexture = gl.getParameter(gl.MAX_TEXTURE_SIZE);
+  }
+
+  program(key, sources) {
+    if (this.programs.has(key)) return this.programs.get(key);
+    const gl = this.gl;
+    const compile = (type, source) => {
+      const s = gl.createShader(type);
+      gl.shaderSource(s, source);
+      gl.compileShader(s);
+      if (!gl.getShaderParameter(s, gl.COMPILE_STATUS)) throw new Error(`shader: ${gl.getShaderInfoLog(s)}`);
+      return s;
+    };
+    const p = gl.createProgram();
+    gl.attachShader(p, compile(gl.VERTEX_SHADER, sources.vertex));
+    gl.attachShader(p, compile(gl.FRAGMENT_SHADER, sources.fragment));
+    gl.bindAttribLocation(p, 0, "a_index");
+    gl.linkProgram(p);
+    if (!gl.getProgramParameter(p, gl.LINK_STATUS)) throw new Error(`shader link: ${gl.getProgramInfoLog(p)}`);
+    const uniforms = {};
+    for (let i = 0; i < gl.getProgramParameter(p, gl.ACTIVE_UNIFORMS); i++) {
+      const name = gl.getActiveUniform(p, i).name;
+      uniforms[name] = gl.getUniformLocation(p, name);
+    }
+    const entry = { program: p, uniforms };
+    this.programs.set(key, entry);
+    return entry;
+  }
+
+  floatTexture(format, width, height, data) {
+    const gl = this.gl, tex = gl.createTexture();
+    gl.bindTexture(gl.TEXTURE_2D, tex);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_S, gl.CLAMP_TO_EDGE);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE);
+    const fmt = { [gl.RGBA32F]: [gl.RGBA, gl.FLOAT], [gl.R32F]: [gl.RED, gl.FLOAT], [gl.RGBA16F]: [gl.RGBA, gl.HALF_FLOAT],
+      [gl.RGBA8]: [gl.RGBA, gl.UNSIGNED_BYTE] }[format];
+    gl.texImage2D(gl.TEXTURE_2D, 0, format, width, height, 0, fmt[0], fmt[1], data || null);
+    return tex;
+  }
+
+  /** Segment i of `model` (decoded) on the GPU. Throws Error when it does not fit this GPU's textures. */
+  upload(model, i) {
+    const gl = this.gl, s = model.segments[i], d = s.decoded;
+    const L = dataLayout(s.positionDegree, s.rotationDegree, s.channels);
+    const texels = s.count * L.texels, rows = Math.max(1, Math.ceil(texels / DATA_WIDTH));
+    if (rows > this.maxTexture) {
+      throw new Error(`segment ${i} has ${s.count} Gaussians, more than this browser's WebGL textures hold `
+        + `(${Math.floor((this.maxTexture * DATA_WIDTH) / L.texels)} of this layout)`);
+    }
+    const data = new Float32Array(rows * DATA_WIDTH * 4), stride = 4 * L.texels;
+    const P = 3 * (s.positionDegree + 1), Q = 4 * (s.rotationDegree + 1), C = s.channels;
+    for (let g = 0; g < s.count; g++) {
+      const o = g * stride;
+      data[o] = d.opacity[g]; data[o + 1] = d.t_center[g]; data[o + 2] = d.t_scale[g];
+      data[o + 3] = d.scale[3 * g]; data[o + 4] = d.scale[3 * g + 1]; data[o + 5] = d.scale[3 * g + 2];
+      data.set(d.position.subarray(P * g, P * g + P), o + L.position);
+      data.set(d.rotation.subarray(Q * g, Q * g + Q), o + L.rotation);
+      data.set(d.features.subarray(C * g, C * g + C), o + L.features);
+    }
+    const gpu = { index: i, count: s.count, layout: L, kind: model.kind, instances: 0,
+      texture: this.floatTexture(gl.RGBA32F, DATA_WIDTH, rows, data) };
+    gpu.splat = this.program(`splat ${model.kind} ${L.positionDegree} ${L.rotationDegree} ${L.channels}`, splatShaders(model.kind, L));
+    if (model.kind === "full") {
+      const w = mlpWeights(d.decoder), wrows = Math.ceil(w.length / WEIGHTS_WIDTH);
+      const padded = new Float32Array(wrows * WEIGHTS_WIDTH);
+      padded.set(w);
+      gpu.weights = this.floatTexture(gl.R32F, WEIGHTS_WIDTH, wrows, padded);
+      const shape = d.decoder.weights.map((x, k) => `${x.rows}x${x.cols}${d.decoder.biases[k] ? "b" : ""}`).join(",");
+      gpu.colour = this.program(`colour full ${shape} ${d.activation}`, colourShaders("full", d.decoder, d.activation));
+    } else {
+      gpu.colour = this.program(`colour ${model.kind}`, colourShaders(model.kind, null, null));
+    }
+    gpu.vao = gl.createVertexArray();
+    gpu.order = gl.createBuffer();
+    gl.bindVertexArray(gpu.vao);
+    gl.bindBuffer(gl.ARRAY_BUFFER, gpu.order);
+    gl.enableVertexAttribArray(0);
+    gl.vertexAttribIPointer(0, 1, gl.UNSIGNED_INT, 0, 0);
+    gl.vertexAttribDivisor(0, 1);
+    gl.bindVertexArray(null);
+    return gpu;
+  }
+
+  release(gpu) {
+    const gl = this.gl;
+    gl.deleteTexture(gpu.texture);
+    if (gpu.weights) gl.deleteTexture(gpu.weights);
+    gl.deleteBuffer(gpu.order);
+    gl.deleteVertexArray(gpu.vao);
+  }
+
+  setOrder(gpu, order) {
+    const gl = this.gl;
+    gl.bindBuffer(gl.ARRAY_BUFFER, gpu.order);
+    gl.bufferData(gl.ARRAY_BUFFER, order, gl.DYNAMIC_DRAW);
+    gpu.instances = order.length;
+  }
+
+  ensureTargets(width, height) {
+    const gl = this.gl;
+    if (this.targets && this.targets.width === width && this.targets.height === height) return this.targets;
+    if (this.targets) {
+      this.targets.features.forEach((t) => gl.deleteTexture(t));
+      gl.deleteTexture(this.targets.rgba);
+      gl.deleteFramebuffer(this.targets.splatFbo);
+      gl.deleteFramebuffer(this.targets.rgbaFbo);
+    }
+    const features = [0, 1, 2].map(() => this.floatTexture(this.featureFormat, width, height));
+    const splatFbo = gl.createFramebuffer();
+    gl.bindFramebuffer(gl.FRAMEBUFFER, splatFbo);
+    features.forEach((t, k) => gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0 + k, gl.TEXTURE_2D, t, 0));
+    const rgba = this.floatTexture(gl.RGBA8, width, height);
+    const rgbaFbo = gl.createFramebuffer();
+    gl.bindFramebuffer(gl.FRAMEBUFFER, rgbaFbo);
+    gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, rgba, 0);
+    if (gl.checkFramebufferStatus(gl.FRAMEBUFFER) !== gl.FRAMEBUFFER_COMPLETE) throw new Error("WebGL: the colour target is incomplete");
+    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+    this.targets = { width, height, features, splatFbo, rgba, rgbaFbo };
+    return this.targets;
+  }
+
+  setCamera(u, uniforms) {
+    const gl = this.gl, set = (name, fn, ...v) => { if (uniforms[name]) gl[fn](uniforms[name], ...v); };
+    set("u_R0", "uniform3f", u.R[0], u.R[1], u.R[2]);
+    set("u_R1", "uniform3f", u.R[3], u.R[4], u.R[5]);
+    set("u_R2", "uniform3f", u.R[6], u.R[7], u.R[8]);
+    set("u_t", "uniform3f", ...u.t);
+    set("u_intr", "uniform4f", ...u.intr);
+    set("u_size", "uniform2f", ...u.size);
+    set("u_lim", "uniform4f", ...u.lim);
+    set("u_fisheye", "uniform1i", u.fisheye);
+    set("u_k", "uniform4f", ...u.k);
+    set("u_maxAngle", "uniform1f", u.maxAngle);
+    set("u_center", "uniform3f", ...u.center);
+  }
+
+  /** Render `gpu` (its current order) seen by `camera` at normalised time tau into the canvas, or into
+   * pixels (returned: Uint8Array RGBA, top row first). */
+  draw(gpu, camera, tau, target = "canvas") {
+    const gl = this.gl, W = camera.width, H = camera.height, u = cameraUniforms(camera);
+    const t = this.ensureTargets(W, H);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, t.splatFbo);
+    const outputs = gpu.kind === "full" ? 3 : 1;
+    gl.drawBuffers([gl.COLOR_ATTACHMENT0, gl.COLOR_ATTACHMENT1, gl.COLOR_ATTACHMENT2].map((b, k) => (k < outputs ? b : gl.NONE)));
+    gl.viewport(0, 0, W, H);
+    gl.clearColor(0, 0, 0, 0);
+    gl.clear(gl.COLOR_BUFFER_BIT);
+    gl.enable(gl.BLEND);
+    gl.blendFunc(gl.ONE_MINUS_DST_ALPHA, gl.ONE);  // front to back: dst += T src, T = 1 - dst alpha
+    const splat = gpu.splat;
+    gl.useProgram(splat.program);
+    this.setCamera(u, splat.uniforms);
+    gl.uniform1f(splat.uniforms.u_tau, tau);
+    gl.activeTexture(gl.TEXTURE0);
+    gl.bindTexture(gl.TEXTURE_2D, gpu.texture);
+    gl.uniform1i(splat.uniforms.u_data, 0);
+    gl.bindVertexArray(gpu.vao);
+    if (gpu.instances) gl.drawArraysInstanced(gl.TRIANGLE_STRIP, 0, 4, gpu.instances);
+    gl.bindVertexArray(null);
+    gl.disable(gl.BLEND);
+
+    const colour = gpu.colour;
+    if (target === "canvas") {
+      if (this.canvas.width !== W || this.canvas.height !== H) { this.canvas.width = W; this.canvas.height = H; }
+      gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+    } else {
+      gl.bindFramebuffer(gl.FRAMEBUFFER, t.rgbaFbo);
+    }
+    gl.viewport(0, 0, W, H);
+    gl.useProgram(colour.program);
+    this.setCamera(u, colour.uniforms);
+    gl.uniform1i(colour.uniforms.u_flip, target === "canvas" ? 1 : 0);
+    const textures = [...t.features.slice(0, outputs), ...(gpu.weights ? [gpu.weights] : [])];
+    ["u_f0", "u_f1", "u_f2"].slice(0, outputs).concat(gpu.weights ? ["u_weights"] : []).forEach((name, k) => {
+      gl.activeTexture(gl.TEXTURE0 + k);
+      gl.bindTexture(gl.TEXTURE_2D, textures[k]);
+      gl.uniform1i(colour.uniforms[name], k);
+    });
+    gl.drawArrays(gl.TRIANGLES, 0, 3);
+    if (target === "canvas") return null;
+    const pixels = new Uint8Array(W * H * 4);
+    gl.readPixels(0, 0, W, H, gl.RGBA, gl.UNSIGNED_BYTE, pixels);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+    return pixels;
+  }
+}

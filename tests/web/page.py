@@ -1,0 +1,92 @@
+"""Driving the web player in real headless Chromium (selenium; .ci/run installs chromium and
+chromium-driver): a static server for a folder, the browser, and the page's window.stg API."""
+from __future__ import annotations
+
+import base64
+import functools
+import http.server
+import shutil
+import socketserver
+import tempfile
+import threading
+from pathlib import Path
+
+import numpy as np
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+DRIVER = shutil.which("chromedriver")
+#: Software WebGL2 in headless Chromium (SwiftShader through ANGLE), without a GPU.
+FLAGS = ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--disable-gpu", "--use-angle=swiftshader",
+         "--enable-unsafe-swiftshader", "--disable-quic", "--no-first-run", "--disable-background-networking",
+         "--disable-component-update", "--disable-sync", "--window-size=800,600")
+
+
+def missing() -> str | None:
+    """Why the browser tests cannot run here, or None."""
+    try:
+        import selenium  # noqa: F401
+    except ImportError:
+        return "needs selenium"
+    if not (CHROMIUM and DRIVER):
+        return "needs chromium and chromium-driver (apt)"
+    return None
+
+
+class _Quiet(http.server.SimpleHTTPRequestHandler):
+    def log_message(self, *args):
+        pass
+
+
+class Server:
+    """`python -m http.server` for `folder` on a free localhost port, in a thread."""
+
+    def __init__(self, folder: Path, handler=_Quiet):
+        socketserver.TCPServer.allow_reuse_address = True
+        self.httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(handler, directory=str(folder)))
+        self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}/"
+        threading.Thread(target=self.httpd.serve_forever, daemon=True).start()
+
+    def close(self):
+        self.httpd.shutdown()
+        self.httpd.server_close()
+
+
+def start_browser(user_data: Path | None = None):
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+    options = webdriver.ChromeOptions()
+    options.binary_location = CHROMIUM
+    for flag in FLAGS:
+        options.add_argument(flag)
+    options.add_argument(f"--user-data-dir={user_data or tempfile.mkdtemp(prefix='stg-web-chromium-')}")
+    options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
+    driver = webdriver.Chrome(service=Service(DRIVER), options=options)
+    driver.set_script_timeout(120)
+    return driver
+
+
+def wait_ready(driver) -> str | None:
+    """Wait for the page's first load; its error message, or None."""
+    return driver.execute_async_script(
+        "const done = arguments[arguments.length - 1];"
+        "const wait = () => window.stg && window.stg.ready ? window.stg.ready.then(() => done(window.stg.error)) : setTimeout(wait, 20);"
+        "wait();")
+
+
+def snapshot(driver, camera: dict | None = None, t: float | None = None) -> np.ndarray:
+    """(H, W, 4) uint8 of window.stg.snapshot() after setCamera(camera) and setTime(t)."""
+    result = driver.execute_async_script(
+        "const [cam, t, done] = arguments;"
+        "try { if (cam) window.stg.setCamera(cam); if (t !== null) window.stg.setTime(t);"
+        " window.stg.snapshotBase64().then(done, (e) => done({error: String(e)})); } catch (e) { done({error: String(e)}); }",
+        camera, t)
+    if "error" in result:
+        raise AssertionError(f"snapshot failed: {result['error']}")
+    data = np.frombuffer(base64.b64decode(result["data"]), np.uint8)
+    return data.reshape(result["height"], result["width"], 4)
+
+
+def psnr(image: np.ndarray, reference: np.ndarray) -> float:
+    """PSNR in dB of uint8 `image` (H, W, 3) against float `reference` in [0, 1]."""
+    mse = np.mean((image.astype(np.float64) / 255.0 - np.clip(reference, 0, 1).astype(np.float64)) ** 2)
+    return float(10 * np.log10(1.0 / max(mse, 1e-12)))
