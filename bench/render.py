@@ -1,9 +1,25 @@
 #!/usr/bin/env python
-"""Frames per second of the CPU runtime (Player.render) for lite and full models of N Gaussians, with a
-breakdown (time evaluation, splatting, decoder), beside the float64 numpy reference splatter.
+"""Frames per second of the runtime (Player.render) for lite and full models, with each step's time
+(time evaluation; the splat's projection, depth sort, tile binning and compositing; colour: the lite
+clamp or the full model's decoder) and the scene's rendering load beside every figure.
 
-    python bench/render.py [--gaussians 100000] [--size 640x360] [--repeats 20] [--threads N]
-    python bench/render.py --device cuda [--gaussians 200000] [--size 1352x1014] [--no-gsplat]
+    python bench/render.py [--scene like-trained|trained|random] [--gaussians 100000]
+                           [--size 640x360[,1352x1014]] [--repeats 20] [--threads N]
+    python bench/render.py --device cuda [--scene ...] [--gaussians 200000] [--size 1352x1014] [--no-gsplat]
+
+Scenes (--scene):
+- like-trained (default): stg_runtime.demo.like_trained_model, --gaussians Gaussians whose load is a
+  trained model's: about 50 Gaussians composited per pixel, footprints that scale with the image.
+- trained: a model trained by the project: the demo's (`stg-train --demo --model lite|full`, trained
+  once into --cache and kept), or --model FILE.stg; seen from its first camera, rescaled to --size.
+- random: stg_runtime.demo.random_model, footprints of --radius pixels whatever the size (about one
+  layer per pixel at 100k and 640x360): the scenes of the project's earlier figures.
+
+The load (stg_runtime.render_load at mid-clip): Gaussians composited per pixel before it stops (mean,
+99th percentile), the mean footprint in pixels, Gaussians in view. Timings: median of --repeats
+wall-clock frames after a warm-up, each at a new time; the steps are timed in a second pass over the
+same frames. The float64 spec splatter (stg_runtime.spec.rasterize_oracle) is timed against the numba
+one on a small scene of the same kind (--reference-size), for a ratio measured in the same run.
 
 --device cuda times the numba.cuda path (stg_runtime.cuda: Player(device="cuda") with
 render(out="device"), i.e. without the copy to the host; from one camera, and from a new camera every
@@ -11,27 +27,30 @@ frame along an orbit) and its steps (the splat with either device sort and a kep
 and the onnxruntime decoder), and gsplat's rasterization of the same Gaussians where gsplat and torch
 with CUDA are installed. It needs a real GPU.
 
-Scenes come from stg_runtime.demo.random_model: Gaussians uniform in the volume of a 60-degree frustum
-between depths 2 and 10, projected 3-sigma radius log-uniform in --radius pixels (default 0.5..10,
-footprints 1 to 20 px across), opacity 0.1..0.9, a little motion over the clip. A "deep" scene uses
---deep-radius (default 1..20 px: about four times as many layers per pixel). Each render is at a new
-time (swept over the clip), so time evaluation is included. Timings: median of --repeats wall-clock
-frames after a warm-up (numba's JIT compiled or loaded from its cache first).
+The header line names the CPU (lscpu), its vector width and the one numba generates code for
+(bench/machine.py says how to take the AVX2 figure on an AVX-512 machine).
 """
 from __future__ import annotations
 
 import argparse
-import os
-import platform
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import numba
 import numpy as np
 
+from machine import describe
 from stg_runtime import Player
-from stg_runtime.demo import random_model
-from stg_runtime.splat_cpu import rasterize
-from stg_runtime.spec import project_oracle, rasterize_oracle
+from stg_runtime import format as stg_format
+from stg_runtime.camera import Camera
+from stg_runtime.decoder import lite_colour
+from stg_runtime.demo import like_trained_model, random_model
+from stg_runtime.model import Model
+from stg_runtime.render_load import render_load, scene_load
+from stg_runtime.splat_cpu import rasterize, stage_seconds
+from stg_runtime.spec import rasterize_oracle
 from stg_runtime.timeeval import evaluate
 
 
@@ -46,7 +65,7 @@ def median_seconds(fn, repeats: int) -> float:
     return float(np.median(times))
 
 
-def cuda_main(args) -> None:
+def cuda_main(args, sizes, kinds) -> None:
     """The GPU benchmark (--device cuda): FPS of Player(device="cuda"), breakdown, gsplat beside it."""
     from stg_runtime.cuda import device, memory
     from stg_runtime.cuda import splat as splat_cuda
@@ -63,17 +82,17 @@ def cuda_main(args) -> None:
     def gpu_seconds(fn, repeats):
         return median_seconds(lambda: (fn(), cuda.synchronize()), repeats)
 
-    w, h = (int(v) for v in args.size.lower().split("x"))
     name = cuda.get_current_device().name
     print(f"GPU: {name.decode() if isinstance(name, bytes) else name}; "
           f"numba {numba.__version__}; device sort: {'CuPy' if device.cupy() is not None else 'numba radix'}")
-    print(f"{args.gaussians} Gaussians at {w}x{h}, median of {args.repeats} renders (output left on the GPU)\n")
+    print(f"scene: {args.scene}, median of {args.repeats} renders (output left on the GPU)\n")
     print("ms/frame: Player.render from one camera; moving: from a new camera every frame; splat ms: with "
           "the sort above; numba sort: the same splat with stg_runtime.cuda.sort's radix sort; decode: fused "
           "kernel; onnx: onnxruntime " + ("CUDA provider" if cuda_provider_available() else
                                           "CPU provider, through the host") + "\n")
-    print(f"{'model':<8}{'FPS':>8}{'ms/frame':>10}{'moving':>8}{'eval ms':>9}{'splat ms':>10}{'numba sort':>12}"
-          f"{'decode ms':>11}{'onnx ms':>9}{'gsplat ms':>11}")
+    print(f"{'model':<8}{'size':>10}{'FPS':>8}{'ms/frame':>10}{'moving':>8}{'eval ms':>9}{'splat ms':>10}"
+          f"{'numba sort':>12}{'decode ms':>11}{'onnx ms':>9}{'gsplat ms':>11}{'layers':>8}{'p99':>5}{'foot':>7}"
+          f"{'in view':>9}")
 
     def step_ms(fn, repeats):
         fn()
@@ -82,18 +101,18 @@ def cuda_main(args) -> None:
                 fn()
         return {step: 1000 * s / repeats for step, s in seconds.items()}
 
-    radius_px = tuple(float(v) for v in args.radius.split(","))
     steps = []
-    for kind in ("lite", "full"):
-        model = random_model(args.gaussians, kind, width=w, height=h, radius_px=radius_px)
+    for (w, h), kind in ((size, kind) for size in sizes for kind in kinds):
+        model, cam, label = scene(args, kind, w, h)
         player = Player(model, device="cuda")
-        cam, seg = model.cameras[0], model.segments[0]
+        seg = model.segments[0]
+        load = scene_load(model, cam, 0.5 * player.duration)
         warm_until = time.perf_counter() + 1.0  # an idle GPU clocks down: a second of work first
         while time.perf_counter() < warm_until:
             player.render(cam, 0.0, out="device")
         ts = iter(np.linspace(0, player.duration, 2 * args.repeats + 2))
         total = gpu_seconds(lambda: player.render(cam, next(ts), out="device"), args.repeats)
-        path = iter(orbit(model.cameras, 2 * args.repeats + 2))
+        path = iter(orbit([cam], 2 * args.repeats + 2))
         ts = iter(np.linspace(0, player.duration, 2 * args.repeats + 2))
         moving = gpu_seconds(lambda: player.render(next(path), next(ts), out="device"), args.repeats)
         dseg = DeviceSegment(seg)
@@ -104,7 +123,7 @@ def cuda_main(args) -> None:
         t_numba_sort = gpu_seconds(lambda: splat_cuda.rasterize(*g, cam, out="device", sort="numba",
                                                                 workspace=ws["numba"]), args.repeats)
         for sort in ("auto", "numba"):
-            steps.append((f"{kind}, {sort} sort",
+            steps.append((f"{kind} {w}x{h}, {sort}",
                           step_ms(lambda: splat_cuda.rasterize(*g, cam, out="device", sort=sort, workspace=ws[sort]),
                                   args.repeats)))
         t_dec = t_onnx = 0.0
@@ -117,15 +136,17 @@ def cuda_main(args) -> None:
             t_onnx = gpu_seconds(lambda: onnx(feats, cam), args.repeats)
         t_gsplat = _gsplat_seconds([a.copy_to_host() for a in g], cam, args.repeats) if args.gsplat else None
         gs = f"{1000 * t_gsplat:>11.2f}" if t_gsplat else f"{'n/a':>11}"
-        print(f"{kind:<8}{1 / total:>8.1f}{1000 * total:>10.2f}{1000 * moving:>8.2f}{1000 * t_eval:>9.2f}"
-              f"{1000 * t_splat:>10.2f}"
-              f"{1000 * t_numba_sort:>12.2f}{1000 * t_dec:>11.2f}{1000 * t_onnx:>9.2f}{gs}")
+        print(f"{kind:<8}{f'{w}x{h}':>10}{1 / total:>8.1f}{1000 * total:>10.2f}{1000 * moving:>8.2f}"
+              f"{1000 * t_eval:>9.2f}{1000 * t_splat:>10.2f}"
+              f"{1000 * t_numba_sort:>12.2f}{1000 * t_dec:>11.2f}{1000 * t_onnx:>9.2f}{gs}"
+              f"{load.mean_layers:>8.1f}{load.p99_layers:>5.0f}{load.mean_footprint:>7.0f}{load.in_view:>9}", flush=True)
+    print(f"({label})")
     names = list(steps[0][1])
     print("\nsplat steps, ms (the device synchronised after each step, so they add up to a little more than "
           "the splat):")
-    print(f"{'':<20}" + "".join(f"{n:>13}" for n in names))
+    print(f"{'':<26}" + "".join(f"{n:>13}" for n in names))
     for label, ms in steps:
-        print(f"{label:<20}" + "".join(f"{ms.get(n, 0.0):>13.3f}" for n in names))
+        print(f"{label:<26}" + "".join(f"{ms.get(n, 0.0):>13.3f}" for n in names))
 
 
 def _gsplat_seconds(arrays, camera, repeats) -> float | None:
@@ -150,66 +171,134 @@ def _gsplat_seconds(arrays, camera, repeats) -> float | None:
     return median_seconds(run, repeats)
 
 
-def layers(g, camera) -> float:
-    """Mean number of 1-sigma ellipses (2D covariance with blur) over a pixel."""
-    p = project_oracle(g.means, g.quats, g.scales, camera)
-    a, b, c = p.cov2d[p.visible].T
-    return float(np.sum(np.pi * np.sqrt(a * c - b * b)) / (camera.width * camera.height))
+def scene_camera(camera: Camera, width: int, height: int) -> Camera:
+    """`camera` at width x height: its focal length scaled by the width, the picture cropped (or
+    extended) about its centre vertically, so that a 4:3 training camera gives a 16:9 frame."""
+    s = width / camera.width
+    return Camera(camera.fx * s, camera.fy * s, camera.cx * s, camera.cy * s - (camera.height * s - height) / 2,
+                  width, height, camera.world_to_camera, camera.name, camera.model, camera.distortion)
+
+
+def trained_model(kind: str, cache: Path, path: str | None = None) -> Model:
+    """The trained model: `path` if given, else the demo's (`stg-train --demo --model KIND`), trained
+    once into `cache`/demo-KIND and kept there."""
+    if path is None:
+        folder = cache / f"demo-{kind}"
+        path = folder / "model.stg"
+        if not path.exists():
+            print(f"training the demo's {kind} model once into {folder} (stg-train --demo: a few minutes)",
+                  flush=True)
+            subprocess.run([sys.executable, "-m", "stg_train.cli.train", "--demo", "--model", kind,
+                            "--out", str(folder)], check=True, stdout=subprocess.DEVNULL)
+    return stg_format.load(path)
+
+
+def scene(args, kind: str, width: int, height: int) -> tuple[Model, Camera, str]:
+    """The model of --scene for `kind`, the camera to render it from and a description."""
+    if args.scene == "trained":
+        model = trained_model(kind, Path(args.cache), args.model)
+        cam = scene_camera(model.cameras[0], width, height)
+        return model, cam, f"trained model ({model.segments[0].count} Gaussians, {model.cameras[0].name} rescaled)"
+    if args.scene == "like-trained":
+        model = like_trained_model(args.gaussians, width, height, kind)
+        return model, model.cameras[0], f"like_trained_model({args.gaussians})"
+    model = random_model(args.gaussians, kind, width=width, height=height, radius_px=args.radius_px)
+    return model, model.cameras[0], f"random_model({args.gaussians}, radius {args.radius})"
+
+
+def frame_steps(player: Player, camera: Camera, times) -> dict:
+    """Median milliseconds of each step of player.render (time evaluation, the splat's steps, colour),
+    each frame at the next of `times`, after a first frame that is not counted."""
+    rows = []
+    for t in times:
+        segment, tau = player.model.segment_at(t)
+        lap = time.perf_counter()
+        g = evaluate(segment, tau)
+        ms = {"eval": time.perf_counter() - lap}
+        with stage_seconds() as stages:
+            feats = rasterize(g.means, g.quats, g.scales, g.opacities, g.features, camera)[0]
+        ms.update(stages)
+        lap = time.perf_counter()
+        player._decoder(segment)(feats, camera) if player.kind == "full" else lite_colour(feats)
+        ms["colour"] = time.perf_counter() - lap
+        rows.append(ms)
+    return {k: 1000 * float(np.median([r[k] for r in rows[1:]])) for k in rows[0]}
+
+
+STEPS = ("eval", "project", "sort", "bin", "composite", "colour")
+COLUMN = 10
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--gaussians", type=int, default=100_000)
-    ap.add_argument("--size", default="640x360", help="WxH of the timed renders")
+    ap.add_argument("--scene", choices=["like-trained", "trained", "random"], default="like-trained",
+                    help="like-trained: stg_runtime.demo.like_trained_model (default); trained: a trained model "
+                         "(--model, else the demo's, trained once into --cache); random: random_model")
+    ap.add_argument("--gaussians", type=int, default=100_000, help="Gaussians of the generated scenes")
+    ap.add_argument("--size", default="640x360", help="WxH of the timed renders; several: 640x360,1352x1014")
     ap.add_argument("--repeats", type=int, default=20)
-    ap.add_argument("--radius", default="0.5,10", help="3-sigma radius range in pixels, LO,HI")
-    ap.add_argument("--deep-radius", default="1,20", help="radius range of the deep scene (0: skip it)")
+    ap.add_argument("--kinds", default="lite,full", help="models to time (default lite,full)")
+    ap.add_argument("--model", default=None, help="with --scene trained: this .stg instead of the demo's")
+    ap.add_argument("--cache", default="out/bench_cache", help="where --scene trained keeps the demo's models")
+    ap.add_argument("--radius", default="0.5,10", help="--scene random: 3-sigma radius range in pixels, LO,HI")
     ap.add_argument("--threads", type=int, default=0, help="numba threads (default: numba's default)")
-    ap.add_argument("--reference-size", default="64x48", help="WxH for the numpy reference")
+    ap.add_argument("--reference-size", default="64x48", help="WxH for the float64 reference splatter")
     ap.add_argument("--reference-gaussians", type=int, default=2000)
     ap.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
                     help="cuda: time the numba.cuda path on the GPU (needs a real GPU)")
     ap.add_argument("--no-gsplat", dest="gsplat", action="store_false",
                     help="with --device cuda: skip gsplat (whose first use compiles its kernels)")
     args = ap.parse_args()
+    args.radius_px = tuple(float(v) for v in args.radius.split(","))
+    sizes = [tuple(int(v) for v in size.lower().split("x")) for size in args.size.split(",")]
+    kinds = args.kinds.split(",")
     if args.device == "cuda":
-        return cuda_main(args)
+        return cuda_main(args, sizes, kinds)
     if args.threads:
         numba.set_num_threads(args.threads)
-    w, h = (int(v) for v in args.size.lower().split("x"))
-    scenes = [("", args.radius)] + ([("deep", args.deep_radius)] if args.deep_radius != "0" else [])
-    print(f"CPU: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, load average "
-          f"{os.getloadavg()[0]:.2f}; numba {numba.__version__}, {numba.get_num_threads()} threads "
-          f"({numba.threading_layer() if hasattr(numba, 'threading_layer') else '?'} layer)")
-    print(f"{args.gaussians} Gaussians at {w}x{h}, median of {args.repeats} renders\n")
-    print(f"{'model':<12}{'layers':>7}{'FPS':>8}{'ms/frame':>10}{'eval ms':>9}{'splat ms':>10}{'decode ms':>11}")
-    for label, radius in scenes:
-        radius_px = tuple(float(v) for v in radius.split(","))
-        for kind in ("lite", "full"):
-            model = random_model(args.gaussians, kind, width=w, height=h, radius_px=radius_px)
+    print(f"{describe()}; numba {numba.__version__}, {numba.get_num_threads()} threads")
+    print(f"scene: {args.scene}; median of {args.repeats} frames, each at a new time; step times (ms) from a "
+          f"second pass over the same frames; load: Gaussians composited per pixel (mean, p99), mean footprint "
+          f"(pixels), Gaussians in view (stg_runtime.render_load at mid-clip)\n")
+    print(f"{'model':<6}{'size':>10}{'FPS':>7}{'ms':>7}" + "".join(f"{s:>{COLUMN}}" for s in STEPS)
+          + f"{'layers':>8}{'p99':>5}{'foot':>7}{'in view':>9}")
+    for w, h in sizes:
+        for kind in kinds:
+            model, cam, label = scene(args, kind, w, h)
             player = Player(model, device="cpu")
-            cam, seg = model.cameras[0], model.segments[0]
-            ts = iter(np.linspace(0, player.duration, args.repeats + 1))
-            total = median_seconds(lambda: player.render(cam, next(ts)), args.repeats)
-            g = evaluate(seg, 0.5)
-            t_eval = median_seconds(lambda: evaluate(seg, 0.5), args.repeats)
-            t_splat = median_seconds(lambda: rasterize(g.means, g.quats, g.scales, g.opacities, g.features, cam),
-                                     args.repeats)
-            t_dec = 0.0
-            if kind == "full":
-                feats = rasterize(g.means, g.quats, g.scales, g.opacities, g.features, cam)[0]
-                decoder = player._decoder(seg)
-                t_dec = median_seconds(lambda: decoder(feats, cam), args.repeats)
-            print(f"{(kind + ' ' + label).strip():<12}{layers(g, cam):>7.1f}{1 / total:>8.1f}{1000 * total:>10.1f}"
-                  f"{1000 * t_eval:>9.1f}{1000 * t_splat:>10.1f}{1000 * t_dec:>11.1f}")
+            times = np.linspace(0, player.duration, args.repeats + 1)
+            it = iter(times)
+            total = median_seconds(lambda: player.render(cam, next(it)), args.repeats)
+            steps = frame_steps(player, cam, times)
+            load = scene_load(model, cam, 0.5 * player.duration)
+            print(f"{kind:<6}{f'{w}x{h}':>10}{1 / total:>7.1f}{1000 * total:>7.1f}"
+                  + "".join(f"{steps[s]:>{COLUMN}.1f}" for s in STEPS)
+                  + f"{load.mean_layers:>8.1f}{load.p99_layers:>5.0f}{load.mean_footprint:>7.0f}{load.in_view:>9}",
+                  flush=True)
+    print(f"({label})")
+    reference(args, kinds[0])
 
+
+def reference(args, kind: str) -> None:
+    """The float64 spec splatter against the numba one on a small scene of the same kind, one run."""
     rw, rh = (int(v) for v in args.reference_size.lower().split("x"))
-    model = random_model(args.reference_gaussians, "lite", width=rw, height=rh, seed=1)
-    g, cam = evaluate(model.segments[0], 0.5), model.cameras[0]
-    t_ref = median_seconds(lambda: rasterize_oracle(g.means, g.quats, g.scales, g.opacities, g.features, cam), 1)
-    t_fast = median_seconds(lambda: rasterize(g.means, g.quats, g.scales, g.opacities, g.features, cam), 5)
-    print(f"\nnumpy reference, {args.reference_gaussians} Gaussians at {rw}x{rh}: {1000 * t_ref:.0f} ms/frame "
-          f"(numba splatter on the same: {1000 * t_fast:.2f} ms, {t_ref / t_fast:.0f}x faster)")
+    if args.scene == "trained":
+        model = trained_model(kind, Path(args.cache), args.model)
+        cam = scene_camera(model.cameras[0], rw, rh)
+    elif args.scene == "like-trained":
+        model = like_trained_model(args.reference_gaussians, rw, rh, "lite", seed=1)
+        cam = model.cameras[0]
+    else:
+        model = random_model(args.reference_gaussians, "lite", width=rw, height=rh, seed=1)
+        cam = model.cameras[0]
+    g = evaluate(model.segments[0], 0.5)
+    arrays = (g.means, g.quats, g.scales, g.opacities, g.features[:, :3], cam)
+    t_ref = median_seconds(lambda: rasterize_oracle(*arrays), 1)
+    t_fast = median_seconds(lambda: rasterize(*arrays), 5)
+    load = render_load(*arrays[:4], cam)
+    print(f"\nfloat64 reference splatter (stg_runtime.spec.rasterize_oracle), {len(g.opacities)} Gaussians at "
+          f"{rw}x{rh} ({load.summary()}): {1000 * t_ref:.0f} ms/frame; the numba splatter on the same: "
+          f"{1000 * t_fast:.2f} ms, {t_ref / t_fast:.0f}x faster")
 
 
 if __name__ == "__main__":

@@ -27,10 +27,15 @@ results agree with it to float32 rounding. The pipeline, one numba kernel per st
    the runs, and a tile ends once all its pixels have stopped. Records are read by Gaussian id, a
    few list entries ahead of use (prefetch), which makes a depth-ordered copy of them unnecessary.
 
+stage_seconds() times the steps (bench/render.py prints them).
+
 Every per-pixel decision depends only on the pixel and the Gaussian, never on the tile, and every
 pixel takes the same instruction path, so images do not depend on tile_size (bit for bit).
 """
 from __future__ import annotations
+
+import time
+from contextlib import contextmanager
 
 import numba
 import numpy as np
@@ -496,6 +501,30 @@ def _composite(packed, feat, channels, tile_start, tile_ids, tile_order, tile_si
                             out_f[(dst + c) * uc + uch] = F[uchp + src + c]
 
 
+_STAGES: list = []  # the dict of an open stage_seconds() block
+
+
+@contextmanager
+def stage_seconds():
+    """Within the block, rasterize adds each step's wall-clock seconds to the yielded dict (keys
+    "project", "sort", "bin", "composite"), as stg_runtime.cuda.splat.stage_seconds does on the GPU."""
+    times: dict = {}
+    _STAGES.append(times)
+    try:
+        yield times
+    finally:
+        _STAGES.remove(times)
+
+
+def _lap(name: str, since: float) -> float:
+    """Inside stage_seconds(): add the seconds since `since` to step `name`; the time now."""
+    if not _STAGES:
+        return since
+    now = time.perf_counter()
+    _STAGES[-1][name] = _STAGES[-1].get(name, 0.0) + now - since
+    return now
+
+
 def _aligned_empty(shape, align=64):
     """An uninitialised float32 array whose data starts on an `align`-byte boundary."""
     n = int(np.prod(shape))
@@ -535,13 +564,17 @@ def rasterize(means, quats, scales, opacities, features, camera: Camera, *, tile
     tiles_all = np.empty((m, 4), np.int32)
     depth = np.empty(m, np.float64)
     threads = numba.get_num_threads()
+    lap = time.perf_counter()
     with numba.parallel_chunksize(2048):  # dynamic scheduling: robust to a busy core
         _project(means, quats, scales, opacities, features, camera_params(camera), W, H, tile_size,
                  packed_all, tiles_all, depth)
+    lap = _lap("project", lap)
     order = sort_by_depth(tiles_all, depth)
+    lap = _lap("sort", lap)
     tiles_x = -(-W // tile_size)
     tiles_y = -(-H // tile_size)
     tile_start, tile_ids, tile_order = bin_tiles(order, tiles_all, tiles_x, tiles_y)
+    lap = _lap("bin", lap)
     if C > 3:  # the further channels, zero-padded to a multiple of 3
         feat = np.zeros((m, -(-C // 3) * 3), np.float32)
         feat[:, :C] = features
@@ -553,4 +586,5 @@ def rasterize(means, quats, scales, opacities, features, camera: Camera, *, tile
     _composite(packed_all, feat, C, tile_start, tile_ids, tile_order, tile_size, tiles_x, W, H,
                max(1, min(threads, tiles_x * tiles_y)), out_f.reshape(-1), out_a.reshape(-1),
                out_d.reshape(-1))
+    _lap("composite", lap)
     return out_f, out_a, out_d
