@@ -35,6 +35,7 @@ EPILOG = """examples:
   stg-convert import-3dgs point_cloud.ply scene.stg
   stg-convert export-ply model.stg snapshot.ply --time 1.5
   stg-convert merge part0.stg part1.stg whole.stg
+  stg-convert export-web model.stg site/        (then: python -m http.server -d site)
 
 Exit codes: 0 done, 2 bad input or arguments (nothing written)."""
 
@@ -174,6 +175,14 @@ def build_parser() -> argparse.ArgumentParser:
                                    "gaps or overlaps) into one multi-segment file.")
     m.add_argument("inputs", nargs="+", metavar="IN.stg", help="files to join (any order)")
     m.add_argument("output", metavar="OUT.stg")
+
+    w = sub.add_parser("export-web", help="write a folder that plays the model in any browser",
+                       description="Write OUT/index.html, the web player's JavaScript and a copy of the model: a "
+                                   "self-contained folder for any static web host, offline too (python -m "
+                                   "http.server -d OUT, then open http://localhost:8000). docs/web.md tells how "
+                                   "to embed the player in another page.")
+    w.add_argument("input", metavar="MODEL.stg")
+    w.add_argument("output", metavar="OUT", help="folder to write (created when missing)")
     return p
 
 
@@ -181,7 +190,8 @@ def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     handlers = {"compress": _compress, "import-reference": _import_reference, "import-3dgs": _import_3dgs,
-                "export-ply": _export_ply, "merge": _merge}
+                "export-ply": _export_ply, "merge": _merge,
+                "export-web": _export_web}
     try:
         return handlers[args.command](args, parser)
     except (FormatError, PLYError, DataError, RenderError, ValueError) as e:
@@ -261,6 +271,14 @@ def _merge(args, parser) -> int:
     model = merge_files(inputs, out)
     print(f"wrote {out}: {len(model.segments)} segments, {model.num_frames} frames, "
           f"{sum(s.count for s in model.segments)} Gaussians")
+    return 0
+
+
+def _export_web(args, parser) -> int:
+    from stg_runtime.web.export import export_web  # the player's files, only for this command
+    written = export_web(args.input, args.output)
+    print(f"wrote {args.output}: {', '.join(p.name for p in written)}\n"
+          f"serve it with: python -m http.server -d {args.output}  (then open http://localhost:8000)")
     return 0
 
 
