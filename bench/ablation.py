@@ -60,7 +60,22 @@ VARIANTS = {
     "no-rotation": ("w/o polynomial rotation", {"frozen": ("rotation",)}),
     "no-feature-splatting": ("w/o feature splatting (lite rgb)", {"model": "lite"}),
     "no-guided": ("w/o guided sampling", {"guided": False}),
+    # the deviations from the reference implementation (docs/training.md): each flips one default
+    "stat-summed": ("statistic: batch's vectors summed (old)", {"thresholds": {"grad_statistic": "summed"}}),
+    "prune-reference": ("no prune at densification (reference)", {"thresholds": {"prune_at_densify": False}}),
+    "guided-reference": ("guided: depthmax, >= 2 views (reference)",
+                         {"guided_settings": {"depth": "max", "min_views": 2}}),
+    "separate-rotation": ("omega kept for movers only (reference)", {"separate_rotation": True}),
+    "scale-lr-reference": ("scale lr 0.003 (reference N3V)", {"learning_rates": {"log_scale": 0.003}}),
+    "sfm-init": ("SfM initial points (reference)", {"init": "sfm"}),
+    "zero-motion": ("zero initial motion (reference)", {"motion_init": "zero"}),
+    "unstretched-rates": ("30k-step velocity rates (reference)", {"stretch_rates": False}),
 }
+#: The paper's Table 4 (the default variants).
+TABLE4 = ("full", "no-temporal-opacity", "no-motion", "no-rotation", "no-feature-splatting", "no-guided")
+#: The rows of docs/training.md's table of deviations from the reference (bench/ablation.py --deviations).
+DEVIATIONS = ("full", "stat-summed", "prune-reference", "guided-reference", "separate-rotation", "scale-lr-reference",
+              "sfm-init", "zero-motion", "unstretched-rates")
 
 
 FIGURES = ("psnr", "dssim1", "dynamic_psnr", "static_psnr", "dynamic_ssim", "static_ssim", "dynamic_fraction")
@@ -164,7 +179,9 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=d["frames"])
     ap.add_argument("--width", type=int, default=d["width"])
     ap.add_argument("--height", type=int, default=d["height"])
-    ap.add_argument("--variants", default=",".join(VARIANTS), help="comma-separated subset of: " + ", ".join(VARIANTS))
+    ap.add_argument("--variants", default=",".join(TABLE4), help="comma-separated subset of: " + ", ".join(VARIANTS))
+    ap.add_argument("--deviations", action="store_true",
+                    help="the variants of docs/training.md's deviations from the reference: " + ", ".join(DEVIATIONS))
     ap.add_argument("--set", type=parse_setting, action="append", default=[], metavar="KEY=VALUE",
                     help="a TrainConfig field for every variant (VALUE as JSON, else a string)")
     ap.add_argument("--no-novel", action="store_true", help="skip the two novel views inside the rig")
@@ -177,11 +194,15 @@ def main() -> None:
     ap.add_argument("--per-frame", default="", metavar="J,...",
                     help="frames at which to train a one-frame reference and compare every variant with it")
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seed", type=int, default=0, help="training seed")
+    ap.add_argument("--scene-seed", type=int, default=0, help="the synthetic scene's seed (textures, colours)")
+    ap.add_argument("--layout", type=int, default=0,
+                    help="the synthetic scene's object set (stg_train.synthetic.LAYOUTS; 1: the second scene "
+                         "of docs/training.md's deviations table)")
     ap.add_argument("--data", default=None, help="scene folder (generated once; default: a temp folder per size)")
     ap.add_argument("--json", default=None, help="also write the table as JSON here")
     args = ap.parse_args()
-    names = [n.strip() for n in args.variants.split(",") if n.strip()]
+    names = list(DEVIATIONS) if args.deviations else [n.strip() for n in args.variants.split(",") if n.strip()]
     unknown = [n for n in names if n not in VARIANTS]
     if unknown:
         ap.error(f"unknown variant(s) {unknown}; choose from {list(VARIANTS)}")
@@ -189,13 +210,15 @@ def main() -> None:
     size = f"{args.cameras}x{args.frames}-{args.width}x{args.height}"
     if args.supersample > 1:
         size += f"-ss{args.supersample}"
+    if args.scene_seed or args.layout:
+        size += f"-seed{args.scene_seed}-layout{args.layout}"
     data = Path(args.data or os.path.join(tempfile.gettempdir(), f"stg-ablation-scene-{size}"))
     ensure_demo_scene(data, cameras=args.cameras, frames=args.frames, width=args.width, height=args.height,
-                      supersample=args.supersample)
+                      supersample=args.supersample, seed=args.scene_seed, layout=args.layout)
     ds = load_n3v(data, prefer_png=True)  # the lossless frames: the ground truth of every figure
     train_ds = load_n3v(data, prefer_png=False) if args.videos else ds
     settings = dict(args.set)
-    scene = SyntheticScene(seed=0, duration=args.frames / ds.fps)
+    scene = SyntheticScene(seed=args.scene_seed, duration=args.frames / ds.fps, layout=args.layout)
     novel = None if args.no_novel else novel_view_dataset(scene, args.frames, ds.fps, args.width, args.height,
                                                           supersample=args.supersample)
     print(f"{train_ds}; {args.iterations} iterations, {args.points} initial points, seed {args.seed}, "

@@ -39,7 +39,11 @@ class TrainConfig:
     switched off for ablations (params.COMPONENTS: "temporal_opacity", "motion", "rotation",
     "time_features"; `static` freezes them all); motion_init: the initial motion, "zero" (the
     reference's) or "flow" (each initial point's velocity from the optical flow of its frame in the
-    training cameras, stg_train.data.flow).
+    training cameras, stg_train.data.flow); guided_settings: GuidedSettings field overrides;
+    learning_rates: params.LearningRates field overrides (before lr_scale and the stretch);
+    separate_rotation: the reference's step that keeps the rotation velocity only for moving Gaussians
+    (stg_train.strategy.rotation, at Schedule.separate_at). docs/training.md says which defaults are
+    the reference's and which are ours, with the measurements behind them.
     """
 
     model: str = "full"
@@ -61,6 +65,9 @@ class TrainConfig:
     guided: bool = True
     frozen: tuple = ()
     motion_init: str = "flow"
+    guided_settings: dict = field(default_factory=dict)
+    learning_rates: dict = field(default_factory=dict)
+    separate_rotation: bool = False
 
     def for_dataset(self, dataset) -> "TrainConfig":
         """These settings with the choices left open made: init "auto" (or None) -> default_method(dataset),

@@ -9,7 +9,8 @@ intersected exactly with the scene's primitives.
 World axes follow OpenCV (x right, y down, z forward, away from the rig), so cam00 sits at the origin
 with a world_to_camera close to the identity. Units are arbitrary ("units"); time t is in seconds.
 
-The scene (positions are fixed; `seed` only changes the procedural textures and colours):
+The scene (layout 0; `seed` only changes the procedural textures and colours, `layout` 1 is a second
+object set: other positions, sizes, path and speeds, for measurements on a scene nothing was tuned on):
   - a room, the box [-3, 3] x [-2, 1.5] x [-1, 7] seen from inside: textured back wall (checkers and
     noise), floor (tiles and wood-like stripes), side walls (stripes and noise), ceiling (noise);
   - "static_box": a textured cube on the floor;
@@ -151,6 +152,19 @@ def _rot_y(angle: float) -> np.ndarray:
     return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
 
 
+#: Object sets: static_box (centre, half sizes, y rotation), shiny_sphere (centre, radius), rotating_box
+#: (centre, half sizes, rad/s about y), fader (centre, radius), moving_sphere (radius, path: centre +
+#: amplitude * (sin wt, sin 2wt, 1 - cos wt), w = 2 pi / period).
+LAYOUTS = {
+    0: {"static_box": ([-1.3, 1.05, 4.6], [0.45, 0.45, 0.45], 0.5), "shiny_sphere": ([1.3, 0.9, 4.0], 0.6),
+        "rotating_box": ([0.25, 0.9, 5.6], [0.4, 0.6, 0.4], 1.2), "fader": ([-1.0, -0.9, 5.5], 0.35),
+        "moving_sphere": {"radius": 0.3, "centre": [0.0, -0.2, 3.4], "amplitude": [0.9, 0.3, 0.4], "period": 3.0}},
+    1: {"static_box": ([1.4, 0.9, 5.2], [0.6, 0.6, 0.35], -0.7), "shiny_sphere": ([-1.6, 1.0, 4.4], 0.5),
+        "rotating_box": ([-0.6, 0.75, 4.2], [0.3, 0.75, 0.5], -2.0), "fader": ([1.2, -0.6, 4.6], 0.45),
+        "moving_sphere": {"radius": 0.38, "centre": [0.3, 0.1, 3.9], "amplitude": [-0.7, 0.45, 0.8], "period": 2.0}},
+}
+
+
 class SyntheticScene:
     """The dynamic room scene (see the module docstring).
 
@@ -159,11 +173,14 @@ class SyntheticScene:
     "shiny_sphere" (0 turns it off); blur: standard deviation in pixels of the camera's optical blur,
     a Gaussian applied to every rendered image (0 turns it off; the default 1 px band-limits the
     textures like a real lens, which keeps aliasing down and the mp4 videos within about 32 dB PSNR
-    of the PNG frames).
+    of the PNG frames); layout: the object set, 0 (the default scene) or 1 (see the module docstring).
     """
 
     def __init__(self, seed: int = 0, duration: float = 1.0, specular: float = 0.7, shininess: float = 60.0,
-                 blur: float = 1.0):
+                 blur: float = 1.0, layout: int = 0):
+        if layout not in LAYOUTS:
+            raise ValueError(f"layout must be one of {sorted(LAYOUTS)}, got {layout!r}")
+        self.layout = int(layout)
         self.seed = int(seed)
         self.blur = float(blur)
         self.duration = float(duration)
@@ -182,21 +199,29 @@ class SyntheticScene:
             "rot_a": jitter([0.85, 0.30, 0.60]), "rot_b": jitter([0.95, 0.95, 0.95]),
             "fader": jitter([0.15, 0.75, 0.30]),
         }
-        self.static_box = (np.array([-1.3, 1.05, 4.6]), np.array([0.45, 0.45, 0.45]), _rot_y(0.5))
-        self.shiny_sphere = (np.array([1.3, 0.9, 4.0]), 0.6)
-        self.rotating_box_center, self.rotating_box_half = np.array([0.25, 0.9, 5.6]), np.array([0.4, 0.6, 0.4])
-        self.fader_sphere = (np.array([-1.0, -0.9, 5.5]), 0.35)
-        self.moving_sphere_radius = 0.3
+        objects = LAYOUTS[self.layout]
+        self.static_box = (np.array(objects["static_box"][0]), np.array(objects["static_box"][1]),
+                           _rot_y(objects["static_box"][2]))
+        self.shiny_sphere = (np.array(objects["shiny_sphere"][0]), objects["shiny_sphere"][1])
+        self.rotating_box_center = np.array(objects["rotating_box"][0])
+        self.rotating_box_half = np.array(objects["rotating_box"][1])
+        self._spin = objects["rotating_box"][2]
+        self.fader_sphere = (np.array(objects["fader"][0]), objects["fader"][1])
+        self.moving_sphere_radius = objects["moving_sphere"]["radius"]
+        self._path = objects["moving_sphere"]
 
     # -- animation -------------------------------------------------------------------------------
     def moving_sphere_center(self, t: float) -> np.ndarray:
-        """(3,) centre of "moving_sphere" at time t (seconds); a closed path of period 3 s."""
-        w = 2 * np.pi / 3.0
-        return np.array([0.9 * np.sin(w * t), -0.2 + 0.3 * np.sin(2 * w * t), 3.4 + 0.4 * (1 - np.cos(w * t))])
+        """(3,) centre of "moving_sphere" at time t (seconds); a closed path (period 3 s in layout 0)."""
+        p = self._path
+        w = 2 * np.pi / p["period"]
+        (cx, cy, cz), (ax, ay, az) = p["centre"], p["amplitude"]
+        return np.array([cx + ax * np.sin(w * t), cy + ay * np.sin(2 * w * t), cz + az * (1 - np.cos(w * t))])
 
     def rotating_box_rotation(self, t: float) -> np.ndarray:
-        """(3, 3) box-to-world rotation of "rotating_box" at time t (1.2 rad/s about the y axis)."""
-        return _rot_y(1.2 * t)
+        """(3, 3) box-to-world rotation of "rotating_box" at time t (about the y axis; 1.2 rad/s in
+        layout 0)."""
+        return _rot_y(self._spin * t)
 
     def fader_alpha(self, t: float) -> float:
         """Opacity of "fader" at time t: 0, ramps to 1 over [0.25, 0.35] x duration, 1, back to 0 over
@@ -484,7 +509,8 @@ class SyntheticScene:
 
     # -- provenance --------------------------------------------------------------------------------
     def settings(self) -> dict:
-        return {"generator": "stg_train.synthetic.SyntheticScene", "seed": self.seed, "duration": self.duration,
+        return {"generator": "stg_train.synthetic.SyntheticScene", "seed": self.seed, "layout": self.layout,
+                "duration": self.duration,
                 "specular": self.specular, "shininess": self.shininess, "blur": self.blur,
                 "world_axes": "OpenCV: x right, y down, z forward"}
 

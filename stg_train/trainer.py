@@ -32,7 +32,8 @@ from .losses import loss_fn
 from .metrics import psnr_of_mse
 from .params import LearningRates, STGParams, extent_of, position_lr, view_inputs
 from .render import rasterize
-from .strategy import DensityControl, GuidedSampling, Schedule, StepContext, Strategy, Thresholds
+from .strategy import (DensityControl, GuidedSampling, GuidedSettings, Schedule, SeparateRotation, StepContext,
+                       Strategy, Thresholds)
 
 CHECKPOINT_VERSION = 1
 
@@ -62,7 +63,7 @@ class Trainer:
             remove_leftovers(self.out_dir, "checkpoint.pt")  # of a run killed while saving
         self.device = torch.device(config.device)
         self.extent = extent_of([dataset.cameras[i] for i in dataset.train_cameras])
-        self.lr = LearningRates().scaled(config.lr_scale)
+        self.lr = LearningRates(**config.learning_rates).scaled(config.lr_scale)
         if config.stretch_rates:
             self.lr = self.lr.stretched(config.iterations)
         self.schedule = Schedule.scaled(config.iterations, **config.schedule)
@@ -96,7 +97,9 @@ class Trainer:
         self.optimizer = torch.optim.Adam(self.params.param_groups(self.lr, self.extent), eps=1e-15, fused=True)
         self.strategies: list[Strategy] = [DensityControl(self.schedule, self.extent, self.thresholds, box=self.box)]
         if config.guided:
-            self.strategies.append(GuidedSampling(self.schedule))
+            self.strategies.append(GuidedSampling(self.schedule, GuidedSettings(**config.guided_settings)))
+        if config.separate_rotation:
+            self.strategies.append(SeparateRotation(self.schedule))
         self.history: list[dict] = []  # per-step figures: step, loss, psnr, gaussians, seconds
         self.seconds = 0.0  # training time so far (excluding checkpoints and callbacks)
         if _state is not None:

@@ -5,10 +5,13 @@
     ops        append / keep / set Gaussians with their Adam state in step
     density    DensityControl: clone, split, prune, opacity reset
     guided     GuidedSampling: new Gaussians along the rays of high-error patches (the paper's Sec. 4.4)
+    rotation   SeparateRotation: the reference's step that keeps rotation velocities for moving Gaussians
 """
 from .base import StepContext, Strategy
 from .density import DensityControl, Thresholds
 from .guided import GuidedSampling, GuidedSettings
+from .rotation import SeparateRotation, SeparationThresholds
 from .schedule import Schedule
 
-__all__ = ["DensityControl", "GuidedSampling", "GuidedSettings", "Schedule", "StepContext", "Strategy", "Thresholds"]
+__all__ = ["DensityControl", "GuidedSampling", "GuidedSettings", "Schedule", "SeparateRotation", "SeparationThresholds",
+           "StepContext", "Strategy", "Thresholds"]

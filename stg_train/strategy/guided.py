@@ -6,7 +6,8 @@ within the coarse depth range, after the loss has settled. It follows the refere
 
 1. At `schedule.guided_start` (1600 of 30k iterations, scaled like the rest of the schedule) every
    training view is rendered at the step's time and compared with its ground truth (3DGS's SSIM); the
-   (up to) `views` = 2 views with the lowest SSIM below `select_ssim` = 0.91 are chosen.
+   (up to) `views` = 2 views with the lowest SSIM below `select_ssim` = 0.91 are chosen (the reference
+   chooses none unless at least two are below: `min_views`).
 2. At guided_start and then every `schedule.guided_every` steps, one chosen view is rendered again at
    that step's time; if its SSIM is below `act_ssim` = 0.88 (a structure that is already good needs
    nothing) Gaussians are added:
@@ -18,7 +19,9 @@ within the coarse depth range, after the loss has settled. It follows the refere
      linspace(0.7 d, 7.5 d) (`ratio_start`, `ratio_end`), each times (1 + 0.1 (U - 0.5)) (5% jitter),
      where d is the patch's coarse depth: the median of the rendered expected depth over the patch's
      pixels with alpha >= `min_alpha`; patches without any fall back to the camera's far bound
-     (dataset.bounds), else the largest rendered depth of the view. Unlike the reference, the far end
+     (dataset.bounds), else the largest rendered depth of the view. The reference uses one d per
+     view, its largest rendered depth (`depth="max"`); the patch median was measured against it
+     (docs/training.md, "Deviations from the reference"). Unlike the reference, the far end
      is clipped to the camera's far bound when the dataset has one (7.5 d may lie far behind the
      scene's last surface);
    - colour: the ground truth at the pixel; spatial opacity 0.1; a uniform random temporal centre;
@@ -43,6 +46,10 @@ from .ops import append_gaussians
 from .schedule import Schedule
 
 
+#: GuidedSettings.depth values.
+GUIDED_DEPTHS = ("median", "max")
+
+
 @dataclass(frozen=True)
 class GuidedSettings:
     """Thresholds of guided sampling (the reference implementation's values); see the module docstring."""
@@ -60,6 +67,15 @@ class GuidedSettings:
     jitter: float = 0.1
     opacity: float = 0.1
     min_alpha: float = 0.5
+    # d, the depth that the samples' range multiplies: "median" (ours: the patch's median rendered
+    # depth) or "max" (the reference's depthmax: the view's largest rendered depth, one value per view)
+    depth: str = "median"
+    # act only when at least this many training views are below select_ssim (the reference: 2)
+    min_views: int = 1
+
+    def __post_init__(self):
+        if self.depth not in GUIDED_DEPTHS:
+            raise ValueError(f"depth must be one of {GUIDED_DEPTHS}, got {self.depth!r}")
 
 
 def _patch_view(x: Tensor, p: int) -> Tensor:
@@ -157,7 +173,8 @@ class GuidedSampling(Strategy):
             scores.append((ssim(rgb.clamp(0, 1)[None], context.ground_truth(ci, context.frame)[None]).item(), ci))
         scores.sort()
         self.scores = [[score, ci] for score, ci in scores]
-        return [ci for score, ci in scores if score < self.settings.select_ssim][:self.settings.views]
+        below = [ci for score, ci in scores if score < self.settings.select_ssim]
+        return below[:self.settings.views] if len(below) >= self.settings.min_views else []
 
     @torch.no_grad()
     def sample_view(self, params: STGParams, optimizer, context: StepContext, camera_index: int) -> tuple[int, float]:
@@ -194,7 +211,11 @@ class GuidedSampling(Strategy):
             fallback = float(depth[seen].max())
         else:
             fallback = 1.0
-        d = coarse_depth(depth.detach(), alpha.detach(), fallback, s)[rows, cols]
+        if s.depth == "max":
+            view_max = float(depth[seen].max()) if bool(seen.any()) else fallback
+            d = torch.full(rows.shape, view_max, dtype=depth.dtype)
+        else:
+            d = coarse_depth(depth.detach(), alpha.detach(), fallback, s)[rows, cols]
         xyz, _ = ray_samples(camera, rows, cols, d, far, s)
         colour = gt[rows, cols].repeat(s.samples, 1)
         t_center = torch.rand(xyz.shape[0])

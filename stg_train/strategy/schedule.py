@@ -18,6 +18,7 @@ class Schedule:
     outside_at: int = 10000  # remove Gaussians outside the initial box at this step; 0 disables
     guided_start: int = 1600  # guided sampling (strategy.guided): views chosen at this step, first sampling
     guided_every: int = 100  # steps between guided samplings (one per chosen view)
+    separate_at: int = 8001  # strategy.rotation (when enabled): rotating and moving Gaussians separated
 
     @classmethod
     def scaled(cls, total: int, reference_total: int = 30000, min_every: int = 25, min_start: int = 50,
@@ -32,24 +33,29 @@ class Schedule:
         rounds, once the loss is stable), or at the scaled 1600 if later; its samplings are a refine
         period apart. Nothing is added in the last two thirds of a run, as in the reference (its last
         Gaussians come at 1700 of 30000): densification rounds and guided sampling that would start
-        after `total` // 3 are dropped, so a short run does not end on untrained new Gaussians (a
-        100-step run densified at its last step lost 2.4 dB held-out, docs/training.md). A 30k-iteration
-        run gets exactly the reference schedule. Keyword overrides replace single fields (they do not
-        move the other fields)."""
+        after `total` // 3 are dropped (unless densify_rounds or guided_start is given), so a short run
+        does not end on untrained new Gaussians (a 100-step run densified at its last step lost 2.4 dB
+        held-out, docs/training.md). A 30k-iteration run gets exactly the reference schedule. Keyword
+        overrides replace single fields (they do not move the other fields)."""
         f = total / reference_total
         ref = cls()
         start = max(min_start, round(ref.refine_start * f))
         every = max(min_every, round(ref.refine_every * f))
-        last = total // 3  # the last step that may add Gaussians
-        first_refine = (start // every + 1) * every
-        rounds = min(ref.densify_rounds, max(0, (last - first_refine) // every + 1))
-        guided_start = max(round(ref.guided_start * f), start + (ref.densify_rounds + 5) * every)
         sched = cls(refine_start=start, refine_every=every,
-                    densify_rounds=rounds,
+                    densify_rounds=ref.densify_rounds,
                     prune_until=round(ref.prune_until * f),
                     reset_every=max(min_reset_every, round(ref.reset_every * f)),
                     reset_until=round(ref.reset_until * f),
                     outside_at=round(ref.outside_at * f),
-                    guided_start=guided_start if guided_start <= last else total + 1,
-                    guided_every=max(min_every, round(ref.guided_every * f)))
-        return replace(sched, **overrides)
+                    guided_start=max(round(ref.guided_start * f), start + (ref.densify_rounds + 5) * every),
+                    guided_every=max(min_every, round(ref.guided_every * f)),
+                    separate_at=max(1, round(ref.separate_at * f)))
+        sched = replace(sched, **overrides)
+        last = total // 3  # the last step that may add Gaussians
+        if "densify_rounds" not in overrides:
+            first = (sched.refine_start // sched.refine_every + 1) * sched.refine_every
+            fit = max(0, (last - first) // sched.refine_every + 1)
+            sched = replace(sched, densify_rounds=min(sched.densify_rounds, fit))
+        if "guided_start" not in overrides and sched.guided_start > last:
+            sched = replace(sched, guided_start=total + 1)
+        return sched

@@ -7,7 +7,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from stg_train.data import load_n3v  # noqa: E402
-from stg_train.strategy.guided import GuidedSampling, coarse_depth, error_pixels  # noqa: E402
+from stg_train.strategy.guided import GuidedSampling, GuidedSettings, coarse_depth, error_pixels  # noqa: E402
 from stg_train.params import COMPONENTS, STATIC_T_SCALE, STGParams  # noqa: E402
 from stg_train.strategy import Schedule, StepContext  # noqa: E402
 from stg_train.strategy.ops import keep_gaussians  # noqa: E402
@@ -87,6 +87,36 @@ def test_adds_gaussians_in_high_error_patches(half_scene):
     assert np.all(np.abs(z[:k] / (0.7 * d[:k]) - 1) <= 0.05 + 1e-6)
     assert np.all(np.abs(z[k:] / np.minimum(7.5 * d[k:], far) - 1) <= 0.05 + 1e-6)
     assert z.max() <= 1.05 * far + 1e-6
+
+
+def test_reference_depth_is_the_views_largest_rendered_depth(half_scene):
+    trainer, ci, gt = half_scene
+    cam, ds = trainer.dataset.cameras[ci], trainer.dataset
+    far = float(ds.bounds[ci][1])
+    with torch.no_grad():
+        image, out = trainer.render(cam, 0.0)
+    settings = GuidedSettings(depth="max")
+    torch.manual_seed(1)
+    new = GuidedSampling(Schedule(), settings).new_gaussians(trainer.params, cam, image.clamp(0, 1), gt, out.depth,
+                                                             out.alpha, far)
+    _, z = cam.project(new["xyz"].numpy().astype(np.float64))
+    d = float(out.depth[out.alpha >= settings.min_alpha].max())  # one depth for the whole view
+    k = len(z) // 2
+    np.testing.assert_allclose(z[:k] / (0.7 * d), 1, atol=0.05 + 1e-6)
+    np.testing.assert_allclose(z[k:] / min(7.5 * d, far), 1, atol=0.05 + 1e-6)
+
+
+def test_reference_needs_two_views_below_the_threshold(dataset):
+    trainer = Trainer(dataset, TrainConfig(iterations=1, num_points=500, guided=False, depth_candidates=0))
+    renders = {}
+    with torch.no_grad():
+        for ci in dataset.train_cameras:
+            renders[ci] = trainer.render(dataset.cameras[ci], 0.0)[0].clamp(0, 1)
+    bad = dataset.train_cameras[0]
+    gt = {ci: (1 - r if ci == bad else r) for ci, r in renders.items()}  # one view far off, the others perfect
+    context = _context(trainer, lambda ci, j: gt[ci])
+    assert GuidedSampling(Schedule()).choose_views(context) == [bad]
+    assert GuidedSampling(Schedule(), GuidedSettings(min_views=2)).choose_views(context) == []
 
 
 def test_nothing_added_when_ssim_is_high(dataset):
