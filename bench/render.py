@@ -65,7 +65,7 @@ def median_seconds(fn, repeats: int) -> float:
     return float(np.median(times))
 
 
-def cuda_main(args, sizes, kinds) -> None:
+def cuda_main(args, sizes, kinds, counts) -> None:
     """The GPU benchmark (--device cuda): FPS of Player(device="cuda"), breakdown, gsplat beside it."""
     from stg_runtime.cuda import device, memory
     from stg_runtime.cuda import splat as splat_cuda
@@ -102,18 +102,18 @@ def cuda_main(args, sizes, kinds) -> None:
         return {step: 1000 * s / repeats for step, s in seconds.items()}
 
     steps = []
-    for (w, h), kind in ((size, kind) for size in sizes for kind in kinds):
-        model, cam, label = scene(args, kind, w, h)
+    for n, (w, h), kind in ((n, size, kind) for n in counts for size in sizes for kind in kinds):
+        model, cam, label = scene(args, kind, w, h, n)
         player = Player(model, device="cuda")
         seg = model.segments[0]
-        load = scene_load(model, cam, 0.5 * player.duration)
+        load = scene_load(model, cam, player.start_time + 0.5 * player.duration)
         warm_until = time.perf_counter() + 1.0  # an idle GPU clocks down: a second of work first
         while time.perf_counter() < warm_until:
             player.render(cam, 0.0, out="device")
-        ts = iter(np.linspace(0, player.duration, 2 * args.repeats + 2))
+        ts = iter(player.start_time + np.linspace(0, player.duration, 2 * args.repeats + 2))
         total = gpu_seconds(lambda: player.render(cam, next(ts), out="device"), args.repeats)
         path = iter(orbit([cam], 2 * args.repeats + 2))
-        ts = iter(np.linspace(0, player.duration, 2 * args.repeats + 2))
+        ts = iter(player.start_time + np.linspace(0, player.duration, 2 * args.repeats + 2))
         moving = gpu_seconds(lambda: player.render(next(path), next(ts), out="device"), args.repeats)
         dseg = DeviceSegment(seg)
         t_eval = gpu_seconds(lambda: dseg.evaluate(0.5), args.repeats)
@@ -136,7 +136,7 @@ def cuda_main(args, sizes, kinds) -> None:
             t_onnx = gpu_seconds(lambda: onnx(feats, cam), args.repeats)
         t_gsplat = _gsplat_seconds([a.copy_to_host() for a in g], cam, args.repeats) if args.gsplat else None
         gs = f"{1000 * t_gsplat:>11.2f}" if t_gsplat else f"{'n/a':>11}"
-        print(f"{kind:<8}{f'{w}x{h}':>10}{1 / total:>8.1f}{1000 * total:>10.2f}{1000 * moving:>8.2f}"
+        print(f"{kind:<8}{f'{w}x{h} {n // 1000}k':>10}{1 / total:>8.1f}{1000 * total:>10.2f}{1000 * moving:>8.2f}"
               f"{1000 * t_eval:>9.2f}{1000 * t_splat:>10.2f}"
               f"{1000 * t_numba_sort:>12.2f}{1000 * t_dec:>11.2f}{1000 * t_onnx:>9.2f}{gs}"
               f"{load.mean_layers:>8.1f}{load.p99_layers:>5.0f}{load.mean_footprint:>7.0f}{load.in_view:>9}", flush=True)
@@ -193,17 +193,18 @@ def trained_model(kind: str, cache: Path, path: str | None = None) -> Model:
     return stg_format.load(path)
 
 
-def scene(args, kind: str, width: int, height: int) -> tuple[Model, Camera, str]:
-    """The model of --scene for `kind`, the camera to render it from and a description."""
+def scene(args, kind: str, width: int, height: int, n: int) -> tuple[Model, Camera, str]:
+    """The model of --scene for `kind` (n Gaussians where generated), the camera to render it from and a
+    description."""
     if args.scene == "trained":
         model = trained_model(kind, Path(args.cache), args.model)
         cam = scene_camera(model.cameras[0], width, height)
         return model, cam, f"trained model ({model.segments[0].count} Gaussians, {model.cameras[0].name} rescaled)"
     if args.scene == "like-trained":
-        model = like_trained_model(args.gaussians, width, height, kind)
-        return model, model.cameras[0], f"like_trained_model({args.gaussians})"
-    model = random_model(args.gaussians, kind, width=width, height=height, radius_px=args.radius_px)
-    return model, model.cameras[0], f"random_model({args.gaussians}, radius {args.radius})"
+        model = like_trained_model(n, width, height, kind)
+        return model, model.cameras[0], "stg_runtime.demo.like_trained_model"
+    model = random_model(n, kind, width=width, height=height, radius_px=args.radius_px)
+    return model, model.cameras[0], f"stg_runtime.demo.random_model, radius {args.radius} px"
 
 
 def frame_steps(player: Player, camera: Camera, times) -> dict:
@@ -234,10 +235,12 @@ def main() -> None:
     ap.add_argument("--scene", choices=["like-trained", "trained", "random"], default="like-trained",
                     help="like-trained: stg_runtime.demo.like_trained_model (default); trained: a trained model "
                          "(--model, else the demo's, trained once into --cache); random: random_model")
-    ap.add_argument("--gaussians", type=int, default=100_000, help="Gaussians of the generated scenes")
+    ap.add_argument("--gaussians", default="100000", help="Gaussians of the generated scenes; several: "
+                    "100000,200000")
     ap.add_argument("--size", default="640x360", help="WxH of the timed renders; several: 640x360,1352x1014")
     ap.add_argument("--repeats", type=int, default=20)
     ap.add_argument("--kinds", default="lite,full", help="models to time (default lite,full)")
+    ap.add_argument("--load-only", action="store_true", help="print the scenes' load statistics, time nothing")
     ap.add_argument("--model", default=None, help="with --scene trained: this .stg instead of the demo's")
     ap.add_argument("--cache", default="out/bench_cache", help="where --scene trained keeps the demo's models")
     ap.add_argument("--radius", default="0.5,10", help="--scene random: 3-sigma radius range in pixels, LO,HI")
@@ -252,31 +255,47 @@ def main() -> None:
     args.radius_px = tuple(float(v) for v in args.radius.split(","))
     sizes = [tuple(int(v) for v in size.lower().split("x")) for size in args.size.split(",")]
     kinds = args.kinds.split(",")
+    counts = [int(v) for v in args.gaussians.split(",")] if args.scene != "trained" else [0]
+    if args.load_only:
+        return load_main(args, sizes, counts, kinds[0])
     if args.device == "cuda":
-        return cuda_main(args, sizes, kinds)
+        return cuda_main(args, sizes, kinds, counts)
     if args.threads:
         numba.set_num_threads(args.threads)
     print(f"{describe()}; numba {numba.__version__}, {numba.get_num_threads()} threads")
     print(f"scene: {args.scene}; median of {args.repeats} frames, each at a new time; step times (ms) from a "
           f"second pass over the same frames; load: Gaussians composited per pixel (mean, p99), mean footprint "
           f"(pixels), Gaussians in view (stg_runtime.render_load at mid-clip)\n")
-    print(f"{'model':<6}{'size':>10}{'FPS':>7}{'ms':>7}" + "".join(f"{s:>{COLUMN}}" for s in STEPS)
+    print(f"{'model':<6}{'size':>10}{'N':>8}{'FPS':>7}{'ms':>7}" + "".join(f"{s:>{COLUMN}}" for s in STEPS)
           + f"{'layers':>8}{'p99':>5}{'foot':>7}{'in view':>9}")
-    for w, h in sizes:
-        for kind in kinds:
-            model, cam, label = scene(args, kind, w, h)
-            player = Player(model, device="cpu")
-            times = np.linspace(0, player.duration, args.repeats + 1)
-            it = iter(times)
-            total = median_seconds(lambda: player.render(cam, next(it)), args.repeats)
-            steps = frame_steps(player, cam, times)
-            load = scene_load(model, cam, 0.5 * player.duration)
-            print(f"{kind:<6}{f'{w}x{h}':>10}{1 / total:>7.1f}{1000 * total:>7.1f}"
-                  + "".join(f"{steps[s]:>{COLUMN}.1f}" for s in STEPS)
-                  + f"{load.mean_layers:>8.1f}{load.p99_layers:>5.0f}{load.mean_footprint:>7.0f}{load.in_view:>9}",
-                  flush=True)
+    for n, (w, h), kind in ((n, size, kind) for n in counts for size in sizes for kind in kinds):
+        model, cam, label = scene(args, kind, w, h, n)
+        player = Player(model, device="cpu")
+        times = player.start_time + np.linspace(0, player.duration, args.repeats + 1)
+        it = iter(times)
+        total = median_seconds(lambda: player.render(cam, next(it)), args.repeats)
+        steps = frame_steps(player, cam, times)
+        load = scene_load(model, cam, player.start_time + 0.5 * player.duration)
+        print(f"{kind:<6}{f'{w}x{h}':>10}{model.segments[0].count:>8}{1 / total:>7.1f}{1000 * total:>7.1f}"
+              + "".join(f"{steps[s]:>{COLUMN}.1f}" for s in STEPS)
+              + f"{load.mean_layers:>8.1f}{load.p99_layers:>5.0f}{load.mean_footprint:>7.0f}{load.in_view:>9}",
+              flush=True)
     print(f"({label})")
     reference(args, kinds[0])
+
+
+def load_main(args, sizes, counts, kind) -> None:
+    """--load-only: the load statistics of each scene (count x size), no timing."""
+    print(f"scene: {args.scene}; load at mid-clip (stg_runtime.render_load)\n")
+    print(f"{'size':>10}{'Gaussians':>10}{'in view':>9}{'layers':>8}{'p99':>5}{'footprint px':>14}"
+          f"{'image %':>9}{'tile entries':>14}")
+    for n, (w, h) in ((n, size) for n in counts for size in sizes):
+        model, cam, label = scene(args, kind, w, h, n)
+        load = scene_load(model, cam, model.start_frame / model.fps + 0.5 * model.duration)
+        print(f"{f'{w}x{h}':>10}{model.segments[0].count:>10}{load.in_view:>9}{load.mean_layers:>8.1f}"
+              f"{load.p99_layers:>5.0f}{load.mean_footprint:>14.0f}{100 * load.mean_footprint / (w * h):>9.3f}"
+              f"{load.tile_entries:>14}", flush=True)
+    print(f"({label})")
 
 
 def reference(args, kind: str) -> None:
@@ -286,10 +305,10 @@ def reference(args, kind: str) -> None:
         model = trained_model(kind, Path(args.cache), args.model)
         cam = scene_camera(model.cameras[0], rw, rh)
     elif args.scene == "like-trained":
-        model = like_trained_model(args.reference_gaussians, rw, rh, "lite", seed=1)
+        model = like_trained_model(args.reference_gaussians, rw, rh, kind, seed=1)
         cam = model.cameras[0]
     else:
-        model = random_model(args.reference_gaussians, "lite", width=rw, height=rh, seed=1)
+        model = random_model(args.reference_gaussians, kind, width=rw, height=rh, seed=1)
         cam = model.cameras[0]
     g = evaluate(model.segments[0], 0.5)
     arrays = (g.means, g.quats, g.scales, g.opacities, g.features[:, :3], cam)
