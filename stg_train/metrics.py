@@ -8,6 +8,12 @@ Dynamic and static regions: for a static camera, `dynamic_mask` marks the pixels
 changes over the clip; PSNR and SSIM are then also reported over those pixels ("dynamic_psnr",
 "dynamic_ssim") and over the others ("static_psnr", "static_ssim"), so that moving content is judged
 apart from the background that dominates the whole-image figures.
+
+Colour-aligned PSNR ("aligned_psnr"): for captures whose cameras disagree in exposure and colour, the
+literature also scores each held-out camera after one affine colour map (3x3 + bias) per camera, fitted
+by least squares from the renders to the ground truth over all of that camera's evaluated frames. It is
+computed exactly from per-image second moments (`affine_moments`), so no image is kept; the mapped
+image is not clipped to [0, 1].
 """
 from __future__ import annotations
 
@@ -17,7 +23,7 @@ import numpy as np
 
 #: The figures of a held-out evaluation kept in metrics.json and printed by the command lines (and the
 #: LPIPS_KEYS where LPIPS was computed).
-HELDOUT_KEYS = ("psnr", "ssim", "dssim1", "dssim2", "fps", "images", "cameras")
+HELDOUT_KEYS = ("psnr", "aligned_psnr", "ssim", "dssim1", "dssim2", "fps", "images", "cameras")
 #: The per-region figures of a held-out evaluation (dynamic_mask): means over the images, and the
 #: fraction of the held-out pixels that are dynamic and the threshold that decided it.
 REGION_KEYS = ("dynamic_psnr", "dynamic_ssim", "static_psnr", "static_ssim", "dynamic_fraction",
@@ -41,6 +47,29 @@ def psnr_of_mse(mse: float) -> float:
 def psnr(image: np.ndarray, reference: np.ndarray) -> float:
     """Peak signal-to-noise ratio in dB for images in [0, 1] (peak 1); inf for identical images."""
     return psnr_of_mse(float(np.mean((np.asarray(image, np.float64) - np.asarray(reference, np.float64)) ** 2)))
+
+
+def affine_moments(image: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, int]:
+    """Sufficient statistics of an affine colour fit from `image` to `reference` (H, W, 3): with z = (rgb,
+    1) per pixel of the image and y the reference's rgb, (sum z z^T (4, 4), sum z y^T (4, 3), sum |y|^2,
+    number of pixels), float64."""
+    x = np.asarray(image, dtype=np.float64).reshape(-1, 3)
+    y = np.asarray(reference, dtype=np.float64).reshape(-1, 3)
+    z = np.concatenate([x, np.ones((len(x), 1))], axis=1)
+    return z.T @ z, z.T @ y, float(np.sum(y * y)), len(x)
+
+
+def aligned_psnrs(moments: list) -> list[float]:
+    """PSNR (dB) of each image after the one affine colour map (3x3 + bias) that fits all of them best
+    (least squares over their pixels together); `moments`: affine_moments of each image of one camera."""
+    zz = sum(m[0] for m in moments)
+    zy = sum(m[1] for m in moments)
+    fit = np.linalg.lstsq(zz + 1e-9 * np.eye(4), zy, rcond=None)[0]  # (4, 3): y ~ z @ fit
+    out = []
+    for m_zz, m_zy, yy, n in moments:
+        sse = float(np.trace(fit.T @ m_zz @ fit) - 2 * np.trace(fit.T @ m_zy) + yy)
+        out.append(psnr_of_mse(max(sse / (3 * n), 1e-12)))
+    return out
 
 
 def ssim(image: np.ndarray, reference: np.ndarray, data_range: float = 1.0) -> float:
@@ -177,9 +206,10 @@ def evaluate_images(render, dataset, camera_indices=None, frames=None, lpips: di
     cameras (default: the held-out ones) at every frame (or `frames`), with each camera's dynamic_mask
     over those frames at `threshold`.
 
-    Returns summarise's means ("psnr", "ssim", "dssim1", "dssim2", the REGION_KEYS, "lpips_<net>" for
-    each network of `lpips`), "seconds" (spent in `render`), "images", "cameras" (names), "per_frame"
-    (the per-image figures with camera name and frame)."""
+    Returns summarise's means ("psnr", "aligned_psnr" (the module docstring), "ssim", "dssim1",
+    "dssim2", the REGION_KEYS, "lpips_<net>" for each network of `lpips`), "seconds" (spent in
+    `render`), "images", "cameras" (names), "per_frame" (the per-image figures with camera name and
+    frame)."""
     cams = dataset.test_cameras if camera_indices is None else list(camera_indices)
     frames = list(range(dataset.num_frames)) if frames is None else list(frames)
     if not cams or not frames:
@@ -188,12 +218,17 @@ def evaluate_images(render, dataset, camera_indices=None, frames=None, lpips: di
     for ci in cams:
         mask = dynamic_mask((dataset.image(ci, j) for j in frames), threshold)
         masks.append(mask)
+        moments, first = [], len(rows)
         for j in frames:
             start = time.perf_counter()
             image = render(ci, j)
             seconds += time.perf_counter() - start
+            reference = dataset.image(ci, j)
+            moments.append(affine_moments(image, reference))
             rows.append({"camera": dataset.cameras[ci].name, "frame": j,
-                         **image_metrics(image, dataset.image(ci, j), lpips, mask)})
+                         **image_metrics(image, reference, lpips, mask)})
+        for row, value in zip(rows[first:], aligned_psnrs(moments)):
+            row["aligned_psnr"] = value
     return {**summarise(rows, masks, threshold), "seconds": seconds, "images": len(rows),
             "cameras": [dataset.cameras[ci].name for ci in cams], "per_frame": rows}
 

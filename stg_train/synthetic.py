@@ -555,10 +555,11 @@ VIDEO_CODEC = "mp4v"  # MPEG-4 Part 2: written and read back by OpenCV's bundled
 
 
 def _write_camera(scene: SyntheticScene, cam: Camera, video: Path, png_folder: Path | None, num_frames: int,
-                  fps: float, supersample: int, tick) -> tuple[float, float]:
+                  fps: float, supersample: int, tick, effects=None) -> tuple[float, float]:
     """Render frames k / fps, k < num_frames, of `cam` into `video` ('mp4v') and, when png_folder is
-    given, <png_folder>/<k:06d>.png; tick() after each frame. Returns (near, far): the smallest and
-    largest depth the camera sees."""
+    given, <png_folder>/<k:06d>.png; tick() after each frame. effects: a capture.CameraEffects that
+    each frame goes through (None: the ideal picture). Returns (near, far): the smallest and largest
+    depth the camera sees."""
     writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*VIDEO_CODEC), float(fps), (cam.width, cam.height))
     if not writer.isOpened():
         raise RuntimeError(f"{video}: OpenCV cannot write '{VIDEO_CODEC}' video here")
@@ -569,6 +570,8 @@ def _write_camera(scene: SyntheticScene, cam: Camera, video: Path, png_folder: P
         for k in range(num_frames):
             rgb, depth = scene.render(cam, k / fps, return_depth=True, supersample=supersample)
             near, far = min(near, float(depth.min())), max(far, float(depth.max()))
+            if effects is not None:
+                rgb = effects.apply(rgb, cam)
             bgr = np.ascontiguousarray(_to_uint8(rgb)[..., ::-1])
             writer.write(bgr)
             if png_folder is not None:
@@ -591,7 +594,7 @@ def _ticker(total: int, progress):
 
 def write_n3v(out_dir, scene: SyntheticScene, num_cameras: int = 12, num_frames: int = 30, fps: float = 30,
               width: int = 160, height: int = 120, png: bool = True, focal: float | None = None,
-              supersample: int = 1, progress=None) -> list[Camera]:
+              supersample: int = 1, progress=None, capture=None) -> list[Camera]:
     """Render `scene` with its rig and write the Neural 3D Video layout into out_dir:
 
       camXX.mp4          one video per camera ('mp4v', lossy), frame k shows time k / fps;
@@ -602,23 +605,31 @@ def write_n3v(out_dir, scene: SyntheticScene, num_cameras: int = 12, num_frames:
       scene.json         the generator's settings.
 
     Files of either synthetic layout left in out_dir by an earlier run are removed (_remove_layout_files).
-    progress: optional callable(done, total) called after each rendered frame. Returns the cameras.
+    progress: optional callable(done, total) called after each rendered frame. capture: a
+    stg_train.capture.CaptureModel: each camera's frames go through its exposure, white balance,
+    vignetting and noise, and poses_bounds.npy holds its perturbed pose; scene.json then records the
+    model, each camera's effects and its true world_to_camera. Returns the true cameras.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     cams = scene.cameras(num_cameras, width, height, focal=focal)
+    effects = capture.draw(num_cameras) if capture is not None else [None] * num_cameras
     _remove_layout_files(out)
     poses = np.zeros((num_cameras, 17))
     tick = _ticker(num_cameras * num_frames, progress)
     for ci, cam in enumerate(cams):
         near, far = _write_camera(scene, cam, out / f"{cam.name}.mp4", out / "frames" / cam.name if png else None,
-                                  num_frames, fps, supersample, tick)
-        poses[ci, :15] = llff_pose(cam).ravel()
+                                  num_frames, fps, supersample, tick, effects[ci])
+        stated = cam if effects[ci] is None else effects[ci].perturb(cam)
+        poses[ci, :15] = llff_pose(stated).ravel()
         poses[ci, 15:] = near, far
     np.save(out / "poses_bounds.npy", poses)
     meta = dict(scene.settings(), fps=float(fps), num_frames=int(num_frames), num_cameras=int(num_cameras),
                 width=int(width), height=int(height), focal=float(cams[0].fx), supersample=int(supersample),
                 video_codec=VIDEO_CODEC, png=bool(png), held_out="cam00")
+    if capture is not None:
+        meta["capture"] = dict(capture.settings(), cameras=[
+            dict(e.as_dict(), name=c.name, true_world_to_camera=c.world_to_camera.tolist()) for e, c in zip(effects, cams)])
     write_atomic(out / "scene.json", json.dumps(meta, indent=2) + "\n")
     return cams
 

@@ -99,3 +99,21 @@ def test_psnr_and_dssim():
     rng = np.random.default_rng(1)
     b = rng.uniform(0, 1, (16, 16, 3))
     assert metrics.dssim1(b, b) == pytest.approx(0.0, abs=1e-12) and metrics.dssim1(b, 1 - b) > 0.1
+
+
+def test_aligned_psnr_undoes_one_affine_colour_map_per_camera():
+    rng = np.random.default_rng(0)
+    truth = [rng.uniform(0.1, 0.9, (12, 16, 3)) for _ in range(3)]
+    gain = np.array([[0.9, 0.05, 0.0], [0.0, 1.1, 0.02], [0.03, 0.0, 0.8]])
+    bias = np.array([0.02, -0.03, 0.05])
+    renders = [t @ gain.T + bias for t in truth]  # a camera that sees the scene through one colour map
+    exact = metrics.aligned_psnrs([metrics.affine_moments(r, t) for r, t in zip(renders, truth)])
+    assert all(value > 100 for value in exact)  # the map is found: no error is left
+    assert all(metrics.psnr(r, t) < 35 for r, t in zip(renders, truth))
+    # with a different map per frame, one map per camera cannot undo them all
+    varied = [t * (1 + 0.1 * k) for k, t in enumerate(truth)]
+    assert max(metrics.aligned_psnrs([metrics.affine_moments(r, t) for r, t in zip(varied, truth)])) < 60
+    # the fit is at least as good as no map at all
+    noisy = [t + rng.normal(0, 0.02, t.shape) for t in truth]
+    aligned = metrics.aligned_psnrs([metrics.affine_moments(r, t) for r, t in zip(noisy, truth)])
+    assert np.mean(aligned) >= np.mean([metrics.psnr(r, t) for r, t in zip(noisy, truth)]) - 1e-9

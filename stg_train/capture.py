@@ -1,0 +1,128 @@
+"""What a real rig does to a synthetic scene's pictures and poses: per-camera exposure and white balance,
+lens vignetting, sensor noise, and a calibration that is slightly off.
+
+`CaptureModel` holds the knobs (each 0 turns its effect off); `CaptureModel.draw(num_cameras)` draws
+one `CameraEffects` per camera from its seed. The writers of stg_train.synthetic render each frame with
+the true camera, pass it through `CameraEffects.apply`, and store the *perturbed* pose
+(`CameraEffects.perturb`) in the layout, as a calibration error would; the truth goes to scene.json
+(`CameraEffects.as_dict`) so that tests and benchmarks can measure what a method recovers.
+
+Image model, on linear rgb in [0, 1] (H, W, 3), pixel centres at +0.5 (formats/stg-v1.md):
+
+    out = clip(gain * white_balance * vignette(r) * image + noise, 0, 1)
+    vignette(r) = 1 - vignetting * r^2 / r_corner^2      (r: distance from the principal point, px)
+    noise ~ Normal(0, noise)  per pixel and channel, drawn anew for every frame
+
+The pose error is a rotation of `rotation_deg` degrees about a random axis and a translation of
+`translation` world units in a random direction, applied to the camera's world-to-camera transform.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, replace
+
+import numpy as np
+
+from stg_runtime.camera import Camera
+
+
+@dataclass(frozen=True)
+class CaptureModel:
+    """Knobs of a realistic capture (0 turns an effect off).
+
+    gain: standard deviation of the per-camera exposure, in stops (log2 of the gain);
+    white_balance: standard deviation of the per-channel gains around 1 (a ratio);
+    vignetting: brightness lost at the image corners (0.3: 30 % darker there);
+    noise: standard deviation of the sensor noise, in [0, 1] units of the 8-bit range;
+    rotation_deg, translation: size of the pose error (degrees; world units);
+    seed: draws the per-camera values and the noise; reference_camera: index of a camera left exact
+    (exposure 1, white balance 1, no pose error; -1: none), like a rig's master camera."""
+
+    gain: float = 0.25
+    white_balance: float = 0.05
+    vignetting: float = 0.3
+    noise: float = 0.01
+    rotation_deg: float = 0.15
+    translation: float = 0.01
+    seed: int = 0
+    reference_camera: int = -1
+
+    def draw(self, num_cameras: int) -> list["CameraEffects"]:
+        """One CameraEffects per camera, from `seed`."""
+        rng = np.random.default_rng(self.seed)
+        effects = []
+        for ci in range(num_cameras):
+            gain = float(2.0 ** rng.normal(0.0, self.gain)) if self.gain else 1.0
+            balance = np.clip(1.0 + rng.normal(0.0, self.white_balance, 3), 0.5, 1.5) if self.white_balance else np.ones(3)
+            axis = rng.normal(size=3)
+            direction = rng.normal(size=3)
+            exact = ci == self.reference_camera
+            effects.append(CameraEffects(
+                gain=1.0 if exact else gain, white_balance=np.ones(3) if exact else balance,
+                vignetting=self.vignetting, noise=self.noise,
+                rotation=np.zeros(3) if exact else axis / np.linalg.norm(axis) * np.radians(self.rotation_deg),
+                translation=np.zeros(3) if exact else direction / np.linalg.norm(direction) * self.translation,
+                seed=self.seed * 100003 + ci))
+        return effects
+
+    def settings(self) -> dict:
+        return asdict(self)
+
+
+def _rotation(rotvec: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation of an axis-angle vector (radians), Rodrigues' formula."""
+    angle = float(np.linalg.norm(rotvec))
+    if angle < 1e-15:
+        return np.eye(3)
+    k = rotvec / angle
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(angle) * kx + (1 - np.cos(angle)) * kx @ kx
+
+
+@dataclass
+class CameraEffects:
+    """One camera's share of a CaptureModel: gain (scalar), white_balance (3,), vignetting, noise,
+    rotation (3,) axis-angle radians and translation (3,) world units of the pose error, seed of its
+    noise."""
+
+    gain: float
+    white_balance: np.ndarray
+    vignetting: float
+    noise: float
+    rotation: np.ndarray
+    translation: np.ndarray
+    seed: int
+
+    def __post_init__(self):
+        self._rng = np.random.default_rng(self.seed)
+
+    def vignette(self, camera: Camera) -> np.ndarray:
+        """(H, W) brightness factor of the lens falloff (1 at the principal point)."""
+        u = np.arange(camera.width) + 0.5 - camera.cx
+        v = np.arange(camera.height) + 0.5 - camera.cy
+        r2 = u[None, :] ** 2 + v[:, None] ** 2
+        corner = max((x - camera.cx) ** 2 + (y - camera.cy) ** 2 for x in (0, camera.width) for y in (0, camera.height))
+        return 1.0 - self.vignetting * r2 / corner
+
+    def apply(self, image: np.ndarray, camera: Camera) -> np.ndarray:
+        """The picture the camera records of `image` (H, W, 3) rgb in [0, 1]: float64, clipped to [0, 1].
+        Each call draws new noise (call it once per frame, in order, for a repeatable capture)."""
+        out = np.asarray(image, dtype=np.float64) * (self.gain * self.white_balance)[None, None, :]
+        if self.vignetting:
+            out = out * self.vignette(camera)[..., None]
+        if self.noise:
+            out = out + self._rng.normal(0.0, self.noise, out.shape)
+        return np.clip(out, 0.0, 1.0)
+
+    def perturb(self, camera: Camera) -> Camera:
+        """The camera as a slightly wrong calibration states it: world_to_camera premultiplied by the
+        error rotation, then its translation moved by `translation` (the true camera stays as given)."""
+        w2c = np.array(camera.world_to_camera, dtype=np.float64)
+        error = np.eye(4)
+        error[:3, :3] = _rotation(self.rotation)
+        error[:3, 3] = self.translation
+        return replace(camera, world_to_camera=error @ w2c)
+
+    def as_dict(self) -> dict:
+        return {"gain": self.gain, "white_balance": self.white_balance.tolist(), "vignetting": self.vignetting,
+                "noise": self.noise, "rotation_rad": self.rotation.tolist(), "translation": self.translation.tolist()}
+
