@@ -75,7 +75,10 @@ def dataset_options(args) -> dict:
 def format_table(figures: dict, file_bytes: int, gaussians: int | None = None) -> str:
     """The held-out figures (stg_train.metrics.HELDOUT_KEYS, the dynamic / static REGION_KEYS and LPIPS
     where computed), size and Gaussian count, one per line."""
-    rows = [("PSNR (dB)", f"{figures['psnr']:.2f}"), ("SSIM", f"{figures['ssim']:.4f}"),
+    rows = [("PSNR (dB)", f"{figures['psnr']:.2f}")]
+    if figures.get("aligned_psnr") is not None:
+        rows.append(("PSNR colour-aligned (dB)", f"{figures['aligned_psnr']:.2f}"))
+    rows += [("SSIM", f"{figures['ssim']:.4f}"),
             ("DSSIM1", f"{figures['dssim1']:.4f}"), ("DSSIM2", f"{figures['dssim2']:.4f}"),
             ("render FPS", f"{figures['fps']:.1f}"), ("model size (MB)", f"{file_bytes / 1e6:.2f}")]
     if figures.get("dynamic_fraction") is not None:
