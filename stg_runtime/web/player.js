@@ -55,6 +55,8 @@ export class StgPlayer {
     this.lastTick = null;
     this.error = null;
     this.stats = {};
+    this.drawn = null;          // what the canvas shows: view, time and order
+    this.continuous = false;    // draw every animation frame even when nothing changed (benchmarks)
     this.raf = requestAnimationFrame((now) => this.tick(now));
   }
 
@@ -202,6 +204,12 @@ export class StgPlayer {
         this.t = t;
       }
       this.lastTick = now;
+      if (now - this.fpsStart >= 1000) {  // frames drawn per second (0 while nothing changes)
+        this.fps = (1000 * this.frames) / (now - this.fpsStart);
+        this.frames = 0;
+        this.fpsStart = now;
+        this.onFrame(this);
+      }
       const { gpu, index, tau } = this.current();
       const key = `${index} ${tau} ${this.cam.worldToCamera.join(",")}`;
       if (key !== this.sortedFor && !this.inFlight) {
@@ -209,13 +217,11 @@ export class StgPlayer {
         this.inFlight = this.requestSort(index, tau);
       }
       if (!gpu.orderId) return;
+      const drawn = `${key} ${gpu.orderId}`;
+      if (drawn === this.drawn && !this.continuous) return;  // nothing changed since the last frame
+      this.drawn = drawn;
       this.renderer.draw(gpu, this.cam, tau, "canvas");
       this.frames++;
-      if (now - this.fpsStart >= 1000) {
-        this.fps = (1000 * this.frames) / (now - this.fpsStart);
-        this.frames = 0;
-        this.fpsStart = now;
-      }
       this.onFrame(this);
     } catch (e) {
       this.fail(e);

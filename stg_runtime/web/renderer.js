@@ -8,7 +8,7 @@
 //   renderer.draw(gpu, camera, tau, target) target "canvas" or "pixels" (then returns Uint8Array RGBA,
 //                                          top row first, camera.width x camera.height)
 
-import { DATA_WIDTH, WEIGHTS_WIDTH, dataLayout, splatShaders, colourShaders, mlpWeights } from "./shaders.js";
+import { DATA_WIDTH, RECORD_WIDTH, WEIGHTS_WIDTH, dataLayout, splatShaders, colourShaders, mlpWeights } from "./shaders.js";
 
 /** The largest angle off the axis a fisheye sees: the first zero of d theta_d / d theta, or pi. */
 export function fisheyeMaxAngle(k) {
@@ -66,7 +66,8 @@ export class Renderer {
     const p = gl.createProgram();
     gl.attachShader(p, compile(gl.VERTEX_SHADER, sources.vertex));
     gl.attachShader(p, compile(gl.FRAGMENT_SHADER, sources.fragment));
-    gl.bindAttribLocation(p, 0, "a_index");
+    (sources.attributes || []).forEach((name, k) => gl.bindAttribLocation(p, k, name));
+    if (sources.varyings) gl.transformFeedbackVaryings(p, sources.varyings, gl.INTERLEAVED_ATTRIBS);
     gl.linkProgram(p);
     if (!gl.getProgramParameter(p, gl.LINK_STATUS)) throw new Error(`shader link: ${gl.getProgramInfoLog(p)}`);
     const uniforms = {};
@@ -101,10 +102,10 @@ export class Renderer {
       throw new Error(`segment ${i} has ${s.count} Gaussians, more than this browser's WebGL textures hold `
         + `(${Math.floor((this.maxTexture * DATA_WIDTH) / L.texels)} of this layout)`);
     }
-    const data = new Float32Array(rows * DATA_WIDTH * 4), stride = 4 * L.texels;
+    const data = new Float32Array(rows * DATA_WIDTH * 4), perGaussian = 4 * L.texels;
     const P = 3 * (s.positionDegree + 1), Q = 4 * (s.rotationDegree + 1), C = s.channels;
     for (let g = 0; g < s.count; g++) {
-      const o = g * stride;
+      const o = g * perGaussian;
       data[o] = d.opacity[g]; data[o + 1] = d.t_center[g]; data[o + 2] = d.t_scale[g];
       data[o + 3] = d.scale[3 * g]; data[o + 4] = d.scale[3 * g + 1]; data[o + 5] = d.scale[3 * g + 2];
       data.set(d.position.subarray(P * g, P * g + P), o + L.position);
@@ -113,7 +114,10 @@ export class Renderer {
     }
     const gpu = { index: i, count: s.count, layout: L, kind: model.kind, instances: 0,
       texture: this.floatTexture(gl.RGBA32F, DATA_WIDTH, rows, data) };
-    gpu.splat = this.program(`splat ${model.kind} ${L.positionDegree} ${L.rotationDegree} ${L.channels}`, splatShaders(model.kind, L));
+    const key = `${model.kind} ${L.positionDegree} ${L.rotationDegree} ${L.channels}`, sh = splatShaders(model.kind, L);
+    gpu.project = this.program(`project ${key}`, { ...sh.project, attributes: ["a_index"] });
+    gpu.quad = this.program(`quad ${model.kind}`, sh.quad);
+    gpu.recordTexels = sh.recordTexels;
     if (model.kind === "full") {
       const w = mlpWeights(d.decoder), wrows = Math.ceil(w.length / WEIGHTS_WIDTH);
       const padded = new Float32Array(wrows * WEIGHTS_WIDTH);
@@ -124,23 +128,41 @@ export class Renderer {
     } else {
       gpu.colour = this.program(`colour ${model.kind}`, colourShaders(model.kind, null, null));
     }
-    gpu.vao = gl.createVertexArray();
+    // The projection pass reads the order (one point per Gaussian, nearest first) and writes one record
+    // per Gaussian in that order (transform feedback); the quad pass draws one instance per record.
     gpu.order = gl.createBuffer();
-    gl.bindVertexArray(gpu.vao);
+    gpu.projectVao = gl.createVertexArray();
+    gl.bindVertexArray(gpu.projectVao);
     gl.bindBuffer(gl.ARRAY_BUFFER, gpu.order);
     gl.enableVertexAttribArray(0);
     gl.vertexAttribIPointer(0, 1, gl.UNSIGNED_INT, 0, 0);
-    gl.vertexAttribDivisor(0, 1);
+    // records: RGBA32F texels, recordTexels per Gaussian; the buffer holds whole rows of the texture
+    gpu.recordRows = Math.max(1, Math.ceil((s.count * sh.recordTexels) / RECORD_WIDTH));
+    if (gpu.recordRows > this.maxTexture) throw new Error(`segment ${i} has ${s.count} Gaussians, more than this browser's WebGL textures hold`);
+    gpu.records = gl.createBuffer();
+    gl.bindBuffer(gl.ARRAY_BUFFER, gpu.records);
+    gl.bufferData(gl.ARRAY_BUFFER, gpu.recordRows * RECORD_WIDTH * 16, gl.DYNAMIC_COPY);
+    gl.bindBuffer(gl.ARRAY_BUFFER, null);
     gl.bindVertexArray(null);
+    gpu.recordTexture = this.floatTexture(gl.RGBA32F, RECORD_WIDTH, gpu.recordRows);
+    gpu.quadVao = gl.createVertexArray();  // no attributes: the quads read the records texture
+    gpu.feedback = gl.createTransformFeedback();
+    gl.bindTransformFeedback(gl.TRANSFORM_FEEDBACK, gpu.feedback);
+    gl.bindBufferBase(gl.TRANSFORM_FEEDBACK_BUFFER, 0, gpu.records);
+    gl.bindTransformFeedback(gl.TRANSFORM_FEEDBACK, null);
     return gpu;
   }
 
   release(gpu) {
     const gl = this.gl;
     gl.deleteTexture(gpu.texture);
+    gl.deleteTexture(gpu.recordTexture);
     if (gpu.weights) gl.deleteTexture(gpu.weights);
     gl.deleteBuffer(gpu.order);
-    gl.deleteVertexArray(gpu.vao);
+    gl.deleteBuffer(gpu.records);
+    gl.deleteVertexArray(gpu.projectVao);
+    gl.deleteVertexArray(gpu.quadVao);
+    gl.deleteTransformFeedback(gpu.feedback);
   }
 
   setOrder(gpu, order) {
@@ -192,27 +214,50 @@ export class Renderer {
    * pixels (returned: Uint8Array RGBA, top row first). */
   draw(gpu, camera, tau, target = "canvas") {
     const gl = this.gl, W = camera.width, H = camera.height, u = cameraUniforms(camera);
-    const t = this.ensureTargets(W, H);
+    const t = this.ensureTargets(W, H), n = gpu.instances;
+    // 1. time evaluation and footprints, one record per Gaussian in depth order
+    const project = gpu.project;
+    gl.useProgram(project.program);
+    this.setCamera(u, project.uniforms);
+    gl.uniform1f(project.uniforms.u_tau, tau);
+    gl.activeTexture(gl.TEXTURE0);
+    gl.bindTexture(gl.TEXTURE_2D, gpu.texture);
+    gl.uniform1i(project.uniforms.u_data, 0);
+    if (n) {
+      gl.enable(gl.RASTERIZER_DISCARD);
+      gl.bindVertexArray(gpu.projectVao);
+      gl.bindTransformFeedback(gl.TRANSFORM_FEEDBACK, gpu.feedback);
+      gl.beginTransformFeedback(gl.POINTS);
+      gl.drawArrays(gl.POINTS, 0, n);
+      gl.endTransformFeedback();
+      gl.bindTransformFeedback(gl.TRANSFORM_FEEDBACK, null);
+      gl.disable(gl.RASTERIZER_DISCARD);
+      gl.bindBuffer(gl.PIXEL_UNPACK_BUFFER, gpu.records);  // records -> texture, on the GPU
+      gl.bindTexture(gl.TEXTURE_2D, gpu.recordTexture);
+      gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, RECORD_WIDTH, Math.ceil((n * gpu.recordTexels) / RECORD_WIDTH), gl.RGBA, gl.FLOAT, 0);
+      gl.bindBuffer(gl.PIXEL_UNPACK_BUFFER, null);
+    }
+    // 2. the features, splatted front to back
     gl.bindFramebuffer(gl.FRAMEBUFFER, t.splatFbo);
     const outputs = gpu.kind === "full" ? 3 : 1;
     gl.drawBuffers([gl.COLOR_ATTACHMENT0, gl.COLOR_ATTACHMENT1, gl.COLOR_ATTACHMENT2].map((b, k) => (k < outputs ? b : gl.NONE)));
     gl.viewport(0, 0, W, H);
     gl.clearColor(0, 0, 0, 0);
     gl.clear(gl.COLOR_BUFFER_BIT);
-    gl.enable(gl.BLEND);
-    gl.blendFunc(gl.ONE_MINUS_DST_ALPHA, gl.ONE);  // front to back: dst += T src, T = 1 - dst alpha
-    const splat = gpu.splat;
-    gl.useProgram(splat.program);
-    this.setCamera(u, splat.uniforms);
-    gl.uniform1f(splat.uniforms.u_tau, tau);
-    gl.activeTexture(gl.TEXTURE0);
-    gl.bindTexture(gl.TEXTURE_2D, gpu.texture);
-    gl.uniform1i(splat.uniforms.u_data, 0);
-    gl.bindVertexArray(gpu.vao);
-    if (gpu.instances) gl.drawArraysInstanced(gl.TRIANGLE_STRIP, 0, 4, gpu.instances);
-    gl.bindVertexArray(null);
-    gl.disable(gl.BLEND);
-
+    if (n) {
+      gl.enable(gl.BLEND);
+      gl.blendFunc(gl.ONE_MINUS_DST_ALPHA, gl.ONE);  // front to back: dst += T src, T = 1 - dst alpha
+      gl.useProgram(gpu.quad.program);
+      gl.uniform2f(gpu.quad.uniforms.u_size, W, H);
+      gl.activeTexture(gl.TEXTURE0);
+      gl.bindTexture(gl.TEXTURE_2D, gpu.recordTexture);
+      gl.uniform1i(gpu.quad.uniforms.u_records, 0);
+      gl.bindVertexArray(gpu.quadVao);
+      gl.drawArrays(gl.TRIANGLES, 0, 6 * n);
+      gl.bindVertexArray(null);
+      gl.disable(gl.BLEND);
+    }
+    // 3. colour
     const colour = gpu.colour;
     if (target === "canvas") {
       if (this.canvas.width !== W || this.canvas.height !== H) { this.canvas.width = W; this.canvas.height = H; }

@@ -15,6 +15,7 @@
 
 export const DATA_WIDTH = 4096;  // texels per row of the Gaussian data texture
 export const WEIGHTS_WIDTH = 4096;
+export const RECORD_WIDTH = 4096;  // texels per row of the records texture
 
 /** Float offsets of a Gaussian's values in its texels: opacity, t_center, t_scale, scale (3), position
  * ((P+1) x 3), rotation ((Q+1) x 4), features (C); texels = ceil(floats / 4). */
@@ -24,7 +25,7 @@ export function dataLayout(positionDegree, rotationDegree, channels) {
   return { positionDegree, rotationDegree, channels, position, rotation, features, floats, texels: Math.ceil(floats / 4) };
 }
 
-const f = (j) => `d[${j >> 2}].${"xyzw"[j & 3]}`;
+const f = (j) => `d${j >> 2}.${"xyzw"[j & 3]}`;
 const num = (x) => (Number.isInteger(x) ? `${x}.0` : `${x}`);
 
 const CAMERA_UNIFORMS = `
@@ -76,7 +77,7 @@ export function splatShaders(kind, L) {
   v_f0 = vec3(${f(L.features)}, ${f(L.features + 1)}, ${f(L.features + 2)});${full ? `
   v_f1 = vec3(${f(L.features + 3)}, ${f(L.features + 4)}, ${f(L.features + 5)});
   v_f2 = dt * vec3(${f(L.features + 6)}, ${f(L.features + 7)}, ${f(L.features + 8)});` : ""}`;
-  const vertex = `#version 300 es
+  const project = `#version 300 es
 precision highp float;
 precision highp int;
 precision highp sampler2D;
@@ -84,22 +85,17 @@ uniform sampler2D u_data;
 uniform float u_tau;
 ${CAMERA_UNIFORMS}
 in uint a_index;
-flat out vec2 v_mu;
-flat out vec3 v_conic;
-flat out float v_opacity;
-flat out vec2 v_half;
-flat out vec3 v_f0;
-flat out vec3 v_f1;
-flat out vec3 v_f2;
+out vec4 g_shape;   // 2D mean (pixels), half extents of the footprint (pixels)
+out vec4 g_conic;   // conic (power = a dx^2 + b dx dy + c dy^2), temporal opacity (0: culled)
+out vec4 g_f0;      // features 0..2 (w unused)${full ? `
+out vec4 g_f1;
+out vec4 g_f2;` : ""}
 const int T = ${L.texels};
-void cull() { gl_Position = vec4(0.0, 0.0, 2.0, 1.0); }
+void cull() { g_shape = vec4(0.0); g_conic = vec4(0.0); g_f0 = vec4(0.0);${full ? " g_f1 = vec4(0.0); g_f2 = vec4(0.0);" : ""} }
 void main() {
-  vec4 d[T];
+  vec3 v_f0, v_f1, v_f2;
   int base = int(a_index) * T;
-  for (int k = 0; k < T; k++) {
-    int j = base + k;
-    d[k] = texelFetch(u_data, ivec2(j % ${DATA_WIDTH}, j / ${DATA_WIDTH}), 0);
-  }
+${Array.from({ length: L.texels }, (_, k) => `  vec4 d${k} = texelFetch(u_data, ivec2((base + ${k}) % ${DATA_WIDTH}, (base + ${k}) / ${DATA_WIDTH}), 0);`).join("\n")}
   float dt = u_tau - ${f(1)};
   float o = ${f(0)} * exp(-${f(2)} * dt * dt);
   vec3 mean = vec3(${[0, 1, 2].map((a) => horner(L.position, L.positionDegree, 3, a)).join(", ")});
@@ -150,13 +146,42 @@ void main() {
   float radius = ceil(3.0 * sqrt(mid + sqrt(max(0.1, mid * mid - det))));
   float thr = log(255.0 * o) + 0.01;  // beyond the ellipse power = thr, alpha < 1/255
   vec2 h = min(vec2(radius), sqrt(2.0 * thr * vec2(a, c)));
-  v_mu = mu;
-  v_conic = vec3(0.5 * c, -b, 0.5 * a) / det;
-  v_opacity = o;
-  v_half = h;
   ${features}
-  vec2 corner = vec2(float(gl_VertexID & 1), float(gl_VertexID >> 1)) * 2.0 - 1.0;
-  vec2 p = mu + corner * (h + 1.0);
+  g_shape = vec4(mu, h);
+  g_conic = vec4(vec3(0.5 * c, -b, 0.5 * a) / det, o);
+  g_f0 = vec4(v_f0, 0.0);${full ? `
+  g_f1 = vec4(v_f1, 0.0);
+  g_f2 = vec4(v_f2, 0.0);` : ""}
+}`;
+  const R = full ? 5 : 3;  // texels per record
+  const vertex = `#version 300 es
+precision highp float;
+precision highp int;
+precision highp sampler2D;
+uniform vec2 u_size;
+uniform sampler2D u_records;  // the projection pass's records, nearest first
+flat out vec2 v_mu;
+flat out vec3 v_conic;
+flat out float v_opacity;
+flat out vec2 v_half;
+flat out vec3 v_f0;
+flat out vec3 v_f1;
+flat out vec3 v_f2;
+vec4 record(int j) { return texelFetch(u_records, ivec2(j % ${RECORD_WIDTH}, j / ${RECORD_WIDTH}), 0); }
+void main() {  // two triangles per Gaussian, not instanced (instancing is slow in software GL)
+  int i = gl_VertexID / 6, k = gl_VertexID % 6, base = i * ${R};
+  vec4 shape = record(base), conic = record(base + 1);
+  if (conic.w == 0.0) { gl_Position = vec4(0.0, 0.0, 2.0, 1.0); return; }
+  v_mu = shape.xy;
+  v_half = shape.zw;
+  v_conic = conic.xyz;
+  v_opacity = conic.w;
+  v_f0 = record(base + 2).xyz;${full ? `
+  v_f1 = record(base + 3).xyz;
+  v_f2 = record(base + 4).xyz;` : ""}
+  int v = k < 3 ? k : k - 2;
+  vec2 corner = vec2(float(v & 1), float(v >> 1)) * 2.0 - 1.0;
+  vec2 p = shape.xy + corner * (shape.zw + 1.0);
   gl_Position = vec4(p / u_size * 2.0 - 1.0, 0.0, 1.0);
 }`;
   const fragment = `#version 300 es
@@ -182,8 +207,14 @@ void main() {
   o1 = vec4(v_f1 * alpha, alpha);
   o2 = vec4(v_f2 * alpha, alpha);` : ""}
 }`;
-  return { vertex, fragment };
+  const varyings = full ? ["g_shape", "g_conic", "g_f0", "g_f1", "g_f2"] : ["g_shape", "g_conic", "g_f0"];
+  return { project: { vertex: project, fragment: DISCARD_FRAGMENT, varyings }, quad: { vertex, fragment }, recordTexels: R };
 }
+
+const DISCARD_FRAGMENT = `#version 300 es
+precision highp float;
+out vec4 colour;
+void main() { colour = vec4(0.0); }`;
 
 export const FULLSCREEN_VERTEX = `#version 300 es
 void main() {

@@ -61,16 +61,22 @@ def start_browser(user_data: Path | None = None):
     options.add_argument(f"--user-data-dir={user_data or tempfile.mkdtemp(prefix='stg-web-chromium-')}")
     options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
     driver = webdriver.Chrome(service=Service(DRIVER), options=options)
-    driver.set_script_timeout(120)
+    driver.set_script_timeout(180)
     return driver
 
 
-def wait_ready(driver) -> str | None:
-    """Wait for the page's first load; its error message, or None."""
-    return driver.execute_async_script(
-        "const done = arguments[arguments.length - 1];"
-        "const wait = () => window.stg && window.stg.ready ? window.stg.ready.then(() => done(window.stg.error)) : setTimeout(wait, 20);"
-        "wait();")
+def wait_ready(driver, timeout: float = 60.0) -> str | None:
+    """Wait for the page's first load; its error message, or None. AssertionError with the page's
+    console when the page does not start."""
+    result = driver.execute_async_script(
+        "const [timeout, done] = arguments, end = performance.now() + 1000 * timeout;"
+        "const wait = () => window.stg && window.stg.ready ? window.stg.ready.then(() => done([window.stg.error]))"
+        " : performance.now() > end ? done(null) : setTimeout(wait, 20);"
+        "wait();", timeout)
+    if result is None:
+        logs = "\n".join(entry["message"] for entry in driver.get_log("browser"))
+        raise AssertionError(f"the page did not start within {timeout} s; its console:\n{logs}")
+    return result[0]
 
 
 def snapshot(driver, camera: dict | None = None, t: float | None = None) -> np.ndarray:
