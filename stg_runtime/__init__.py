@@ -19,10 +19,22 @@ if "onnxruntime" in sys.modules and "ORT_DISABLE_TELEMETRY" not in os.environ:
                   "the environment.", RuntimeWarning, stacklevel=2)
 os.environ.setdefault("ORT_DISABLE_TELEMETRY", "1")
 
-from .camera import Camera  # noqa: E402
-from .format import FormatError, Limits  # noqa: E402
-from .model import Model, Segment  # noqa: E402
-from .player import Player, RenderError  # noqa: E402
-
 __version__ = "0.1.0"
 __all__ = ["Camera", "FormatError", "Limits", "Model", "Player", "RenderError", "Segment"]
+
+#: Public name -> its module. Imported on first use (PEP 562), so that a command line's `--help` and
+#: argument errors, which import only stg_runtime's light modules, do not wait for numba.
+_HOMES = {"Camera": "camera", "FormatError": "format", "Limits": "format", "Model": "model", "Segment": "model",
+          "Player": "player", "RenderError": "player"}
+
+
+def __getattr__(name: str):
+    if name in _HOMES:
+        import importlib
+
+        return getattr(importlib.import_module(f".{_HOMES[name]}", __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(list(globals()) + list(_HOMES))

@@ -303,14 +303,112 @@ def orbit(cameras, num_frames: int, target=None, radius=None, width=None, height
     return path
 
 
+#: The largest image side a camera-path camera may have (pixels).
+MAX_PATH_SIDE = 16384
+
+
+class CameraPathError(ValueError):
+    """A camera-path file that is not one; the message names the file, the camera index and the field."""
+
+
 def load_camera_path(path) -> list[Camera]:
-    """Cameras from a JSON file holding a list of camera objects (formats/stg-v1.md, section 4);
-    ValueError naming the file when it is not one."""
+    """Cameras from a camera-path JSON file: a non-empty list of camera objects (formats/stg-v1.md,
+    section 4; docs/render.md has the schema and an example). CameraPathError (a ValueError) naming the
+    file, the camera's index and the field when it is not one: a missing or mistyped field, a size or
+    focal length that is not a positive number, a world_to_camera that is not a rigid 4x4 transform."""
     try:
-        data = json.loads(Path(path).read_text())
-        return [Camera.from_dict(d) for d in data]
-    except (OSError, ValueError, KeyError, TypeError) as e:
-        raise ValueError(f"{path}: not a readable camera path ({e})") from None
+        text = Path(path).read_text()
+    except OSError as e:
+        raise CameraPathError(f"{path}: cannot read it ({e.strerror or e})") from None
+    except UnicodeDecodeError:
+        raise CameraPathError(f"{path}: not a camera path: not a text (JSON) file") from None
+    try:
+        data = json.loads(text)
+    except ValueError as e:
+        raise CameraPathError(f"{path}: not a camera path: invalid JSON ({e})") from None
+    if not isinstance(data, list) or not data:
+        got = "an empty list" if data == [] else f"a JSON {type(data).__name__.replace('dict', 'object')}"
+        raise CameraPathError(f"{path}: a camera path is a non-empty JSON list of camera objects, got {got}")
+    cameras = []
+    for i, entry in enumerate(data):
+        try:
+            cameras.append(camera_from_object(entry))
+        except ValueError as e:
+            raise CameraPathError(f"{path}: camera {i}: {e}") from None
+    return cameras
+
+
+def _number(d: dict, key: str, where: str = "", positive: bool = False) -> float:
+    if key not in d:
+        raise ValueError(f'{where}"{key}" is missing')
+    value = d[key]
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
+        raise ValueError(f'{where}"{key}" must be a {"positive " if positive else ""}number, got {json.dumps(value)}')
+    if positive and not value > 0:
+        raise ValueError(f'{where}"{key}" must be a positive number, got {json.dumps(value)}')
+    return float(value)
+
+
+def _side(d: dict, key: str) -> int:
+    value = d.get(key)
+    if key not in d:
+        raise ValueError(f'"{key}" is missing')
+    if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= MAX_PATH_SIDE:
+        raise ValueError(f'"{key}" must be a whole number of pixels, 1..{MAX_PATH_SIDE}, got {json.dumps(value)}')
+    return value
+
+
+def _rigid(value) -> np.ndarray:
+    """A world_to_camera value (16 numbers, row-major, or 4 rows of 4) -> (4, 4), or ValueError."""
+    try:
+        ok = not isinstance(value, (str, bytes, dict)) and all(
+            not isinstance(v, bool) and isinstance(v, (int, float))
+            for v in np.asarray(value, dtype=object).ravel())
+        m = np.asarray(value, dtype=np.float64) if ok else None
+    except (ValueError, TypeError):
+        m = None
+    if m is None or m.size != 16 or m.shape not in ((16,), (4, 4)):
+        raise ValueError(f'"world_to_camera" must be 16 numbers (a row-major 4x4 matrix, or 4 rows of 4), got '
+                         f"{json.dumps(value)[:80]}")
+    m = m.reshape(4, 4)
+    if not np.all(np.isfinite(m)):
+        raise ValueError('"world_to_camera" has a non-finite entry')
+    if np.abs(m[3] - [0, 0, 0, 1]).max() > 1e-9:
+        raise ValueError(f'"world_to_camera": the last row must be 0 0 0 1, got {m[3].tolist()}')
+    r = m[:3, :3]
+    if np.abs(r @ r.T - np.eye(3)).max() > 1e-4 or np.linalg.det(r) <= 0:
+        raise ValueError('"world_to_camera": the upper-left 3x3 block must be a rotation (orthonormal within 1e-4, '
+                         f"determinant +1; scale or mirroring is not a camera pose), got {np.round(r, 6).tolist()}")
+    return m
+
+
+def camera_from_object(d) -> Camera:
+    """A Camera from one camera object of a camera path (formats/stg-v1.md, section 4), checked field by
+    field; ValueError naming the field otherwise."""
+    if not isinstance(d, dict):
+        raise ValueError(f"expected a camera object {{\"width\": ..., \"fx\": ..., ...}}, got {json.dumps(d)[:60]}")
+    model = d.get("model", "pinhole")
+    if model not in MODELS:
+        raise ValueError(f'"model" must be one of {", ".join(MODELS)}, got {json.dumps(model)}')
+    name = d.get("name", "")
+    if not isinstance(name, str):
+        raise ValueError(f'"name" must be a string, got {json.dumps(name)}')
+    width, height = _side(d, "width"), _side(d, "height")
+    if "world_to_camera" not in d:
+        raise ValueError('"world_to_camera" is missing')
+    w2c = _rigid(d["world_to_camera"])
+    if model == "pinhole":
+        i, where = d, ""
+    else:
+        i, where = d.get("intrinsics"), "intrinsics: "
+        if not isinstance(i, dict):
+            raise ValueError(f'"intrinsics" must be an object with fx, fy, cx, cy, k1..k4 (fisheye), got {json.dumps(i)}')
+    fx, fy = _number(i, "fx", where, positive=True), _number(i, "fy", where, positive=True)
+    cx, cy = _number(i, "cx", where), _number(i, "cy", where)
+    if model == "pinhole":
+        return Camera(fx, fy, cx, cy, width, height, w2c, name)
+    k = tuple(_number(i, key, where) for key in ("k1", "k2", "k3", "k4"))
+    return Camera(fx, fy, cx, cy, width, height, w2c, name, model, k)
 
 
 def save_camera_path(path, cameras: Sequence[Camera]) -> None:

@@ -5,17 +5,28 @@ OUT/metrics.json out.
     train_segments(dataset, out, config, ...)       the segments of a plan (stg_train.segments), merged
     prepare_segments, finish_segments               its two ends, shared with stg_train.distributed
     model_frames(player, dataset, name)             the dataset frames a model covers (for stg-eval)
+    check_cameras(player, dataset, name)            whether a model was trained on the dataset's cameras
     run_demo(out, config, ...)                      the demo: synthetic scene, training, orbit video
+    claim_output(out, dataset, ...)                 refuse to start a new run over an old one (or clear it)
+    Interrupted, RunExists, ResumeConflict          a run stopped by Ctrl-C; a used OUT; a setting --resume cannot change
 
 A run trains (or resumes from OUT/checkpoint.pt), exports OUT/model.stg (checked against the runtime),
 evaluates it with the runtime Player on the held-out camera at every frame and writes OUT/metrics.json.
 Progress and notices go to stderr unless `quiet`.
+
+With stop_on_signal, Ctrl-C (SIGINT) or SIGTERM during training stops the run after the current step:
+the checkpoint is saved and Interrupted raised (a second Ctrl-C stops at once). On resume, the settings
+in RESUMABLE may change (`given` names those the user set); any other setting that differs from the
+checkpoint's is refused (ResumeConflict).
 """
 from __future__ import annotations
 
 import json
+import signal
 import sys
+import threading
 import warnings
+from contextlib import contextmanager
 from dataclasses import asdict
 from pathlib import Path
 from typing import Sequence
@@ -32,7 +43,7 @@ from .convert.merge import merge_files
 from .data import DataError, load_dataset
 from .export import export_trainer
 from .metrics import evaluate_player, heldout, lpips_models
-from .segments import (SegmentError, check_plan, finished, missing_message, plan_segments, pooled, segment_dir,
+from .segments import (PLAN_NAME, SegmentError, check_plan, finished, missing_message, plan_segments, pooled, segment_dir,
                        worst_check)
 from .synthetic import SyntheticScene, write_n3v
 from .trainer import Trainer, TrainConfig
@@ -89,31 +100,193 @@ def _write_metrics(out: Path, metrics: dict) -> None:
     write_atomic(out / "metrics.json", json.dumps(metrics, indent=1) + "\n")
 
 
+#: TrainConfig fields that a resumed run may change (the checkpoint's value is replaced, and the run
+#: says so); a resumed run keeps every other setting of its checkpoint.
+RESUMABLE = ("iterations", "checkpoint_every", "device", "splatter")
+#: What a run leaves in its folder: the files whose presence means OUT holds a run.
+RUN_FILES = ("checkpoint.pt", "model.stg", "metrics.json")
+
+
+class RunExists(DataError):
+    """OUT already holds a run (finished or partial) and neither resume nor force was asked for."""
+
+
+class ResumeConflict(DataError):
+    """A setting given with resume differs from the checkpoint's and cannot change mid-run."""
+
+
+class Interrupted(Exception):
+    """Training stopped by Ctrl-C (SIGINT) or SIGTERM after the checkpoint was saved: checkpoint (its
+    path), step, iterations."""
+
+    def __init__(self, checkpoint: Path, step: int, iterations: int):
+        super().__init__(f"interrupted at step {step} of {iterations}; saved {checkpoint}")
+        self.checkpoint, self.step, self.iterations = Path(checkpoint), step, iterations
+
+
+class _Stop(Exception):
+    """Raised from the step callback when a stop was requested."""
+
+
+def _describe_run(folder: Path) -> str | None:
+    """'a finished run (...)' / 'an unfinished run (...)' for a folder holding RUN_FILES; None if none."""
+    present = [n for n in RUN_FILES if (folder / n).exists()]
+    if not present:
+        return None
+    state = "a finished run" if "metrics.json" in present and "model.stg" in present else "an unfinished run"
+    try:
+        steps = json.loads((folder / "metrics.json").read_text()).get("iterations")
+    except (OSError, ValueError, AttributeError):
+        steps = None
+    return f"{state} ({', '.join(present)}{f', {steps} steps' if steps else ''})"
+
+
+def _check_trainable(dataset) -> None:
+    """DataError when the dataset leaves no camera to train on."""
+    if len(dataset.train_cameras) == 0:
+        raise DataError(f"{dataset.path}: {len(dataset.cameras)} camera(s), all held out for testing: training needs "
+                        "at least one more camera")
+
+
+def claim_output(out, dataset=None, segment_frames: int | None = None, segments: Sequence[int] | None = None,
+                 resume: bool = False, force: bool = False) -> None:
+    """Check OUT before a run starts. RunExists naming the choices when OUT (or, for a segment run, one
+    of the chosen segments' folders) holds a run and neither `resume` nor `force` is set; with `force`
+    the old run's files there are removed (a new run starts from scratch). DataError when OUT is a file.
+    dataset, segment_frames, segments: as for train (they decide which folders a run writes; a dataset
+    without a camera to train on is refused here too)."""
+    out = Path(out)
+    if dataset is not None:
+        _check_trainable(dataset)
+    if out.exists() and not out.is_dir():
+        raise DataError(f"--out {out}: is a file, not a folder")
+    for parent in out.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise DataError(f"--out {out}: cannot create it: {parent} is a file")
+            break
+    folders = [out]
+    if dataset is not None and segment_frames and (
+            segments is not None or len(plan_segments(dataset.num_frames, segment_frames)) > 1):
+        # a segment run: its segments' folders (OUT's own files are the merge of whatever is finished)
+        plan = plan_segments(dataset.num_frames, segment_frames)
+        chosen = range(len(plan)) if segments is None else sorted(set(segments))
+        _check_indices(chosen, plan, dataset.num_frames, segment_frames)
+        if (out / "segments" / PLAN_NAME).exists():
+            check_plan(out, plan, segment_frames)  # OUT cut differently: refused before anything else
+        folders = [segment_dir(out, i, len(plan)) for i in chosen]
+    if resume:
+        return
+    used = [(f, d) for f in folders if (d := _describe_run(f))]
+    if not used:
+        return
+    if not force:
+        folder, what = used[0]
+        raise RunExists(f"{folder} holds {what}: continue it with --resume, write to a new --out, or add --force "
+                        "to train again from scratch (replacing it)")
+    for folder, _ in used:
+        for name in (*RUN_FILES, "orbit.mp4"):
+            (folder / name).unlink(missing_ok=True)
+
+
+@contextmanager
+def _stop_requests(enabled: bool):
+    """Yields stop_requested(): with `enabled` (and on the main thread), Ctrl-C and SIGTERM only set a
+    flag, read after each training step; a second Ctrl-C raises KeyboardInterrupt at once."""
+    if not enabled or threading.current_thread() is not threading.main_thread():
+        yield lambda: False
+        return
+    requested = []
+
+    def handler(signum, frame):
+        if requested:
+            raise KeyboardInterrupt
+        requested.append(signum)
+
+    old = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield lambda: bool(requested)
+    finally:
+        for sig, h in old.items():
+            signal.signal(sig, h)
+
+
+def _run_training(trainer: Trainer, ckpt: Path, quiet: bool, callback, stop_on_signal: bool) -> None:
+    """trainer.train, stoppable by Ctrl-C / SIGTERM after a step (stop_on_signal): then the checkpoint is
+    saved and Interrupted raised."""
+    with _stop_requests(stop_on_signal) as stop_requested:
+        def step_done(t):
+            if callback is not None:
+                callback(t)
+            if stop_requested():
+                raise _Stop
+        try:
+            trainer.train(progress=not quiet, callback=step_done)
+        except _Stop:
+            trainer.save_checkpoint(ckpt)
+            raise Interrupted(ckpt, trainer.step, trainer.config.iterations) from None
+
+
+def _resume(dataset, ckpt: Path, out: Path, config: TrainConfig, given: dict[str, str], quiet: bool) -> Trainer:
+    """Trainer.resume with the RESUMABLE settings the user gave applied (said on stderr); ResumeConflict
+    for another given setting that differs from the checkpoint's."""
+    import torch
+
+    saved = TrainConfig.from_dict(torch.load(ckpt, map_location="cpu", weights_only=True)["config"])
+    changes, notes = {}, []
+    for name, option in sorted(given.items()):
+        new, old = getattr(config, name), getattr(saved, name)
+        if name in ("device", "splatter") or new == old:
+            continue
+        if name not in RESUMABLE:
+            raise ResumeConflict(f"{option}: {ckpt} was trained with {name} = {old!r}, which a resumed run keeps: "
+                                 f"leave {option.split()[0]} out, or start afresh with --force or a new --out")
+        changes[name] = new
+        notes.append(f"{option} replaces the checkpoint's {old!r}")
+    trainer = Trainer.resume(dataset, ckpt, out_dir=out, device=config.device, splatter=config.splatter,
+                             changes=changes)
+    if trainer.step > trainer.config.iterations:
+        raise ResumeConflict(f"{given.get('iterations', '--iterations')}: {ckpt} is already at step {trainer.step}: "
+                             f"give more iterations than {trainer.step}")
+    if not quiet:
+        said = f" ({'; '.join(notes)})" if notes else ""
+        if trainer.step >= trainer.config.iterations:
+            print(f"{ckpt} is finished (step {trainer.step} of {trainer.config.iterations}){said}: exporting and "
+                  f"evaluating it again; --iterations N (more than {trainer.step}) trains on", file=sys.stderr)
+        else:
+            print(f"resuming {ckpt} at step {trainer.step} of {trainer.config.iterations}{said}", file=sys.stderr)
+    return trainer
+
+
 def train(dataset, out, config: TrainConfig, resume: bool = False, quiet: bool = False, check: bool = True,
           segment_frames: int | None = None, segments: Sequence[int] | None = None, lpips: dict | None = None,
-          callback=None) -> dict:
+          callback=None, given: dict[str, str] | None = None, stop_on_signal: bool = False) -> dict:
     """Train (or resume) into `out`, export out/model.stg, evaluate it with the runtime and write
     out/metrics.json; returns the metrics. With segment_frames, a video of more frames (or any run
     naming `segments`, a list of indices) is trained segment by segment (train_segments). lpips: the
     LPIPS networks of the evaluation (default: metrics.lpips_models, when the lpips package works).
     callback(trainer) runs after every training step (Trainer.train's; the training viewer's).
+    given: TrainConfig field -> the option that set it (e.g. {"iterations": "--iterations 500"}): on
+    resume, these replace the checkpoint's where RESUMABLE and are refused where not (ResumeConflict).
+    stop_on_signal: Ctrl-C / SIGTERM save the checkpoint and raise Interrupted (see the module doc).
     Raises DataError and SegmentError naming the problem."""
+    _check_trainable(dataset)
     if segment_frames and (segments is not None or len(plan_segments(dataset.num_frames, segment_frames)) > 1):
-        return train_segments(dataset, out, config, segment_frames, segments, resume, quiet, check, callback)
+        return train_segments(dataset, out, config, segment_frames, segments, resume, quiet, check, callback,
+                              given, stop_on_signal)
     lpips = _lpips(quiet) if lpips is None else lpips
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     remove_leftovers(out)  # of a killed run: its checkpoint, model or metrics being written
     ckpt = out / "checkpoint.pt"
     if resume and ckpt.exists():
-        trainer = Trainer.resume(dataset, ckpt, out_dir=out, device=config.device, splatter=config.splatter)
-        if not quiet:
-            print(f"resuming {ckpt} at step {trainer.step} of {trainer.config.iterations}", file=sys.stderr)
+        trainer = _resume(dataset, ckpt, out, config, given or {}, quiet)
     else:
         if resume and not quiet:
             print(f"no checkpoint in {out}: starting a new run", file=sys.stderr)
         trainer = new_trainer(dataset, config, out, quiet)
-    trainer.train(progress=not quiet, callback=callback)
+    if trainer.step < trainer.config.iterations:
+        _run_training(trainer, ckpt, quiet, callback, stop_on_signal)
     report = export_trainer(trainer, out / "model.stg", check=check)
     result = evaluate_player(Player(report.path, device="cpu"), dataset, lpips=lpips)
     metrics = {"heldout": heldout(result), "iterations": trainer.step, "train_seconds": trainer.seconds,
@@ -127,7 +300,8 @@ def train(dataset, out, config: TrainConfig, resume: bool = False, quiet: bool =
 
 
 def train_segments(dataset, out, config: TrainConfig, segment_frames: int, indices: Sequence[int] | None = None,
-                   resume: bool = False, quiet: bool = False, check: bool = True, callback=None) -> dict:
+                   resume: bool = False, quiet: bool = False, check: bool = True, callback=None,
+                   given: dict[str, str] | None = None, stop_on_signal: bool = False) -> dict:
     """Train the segments `indices` (default: all) of `dataset` cut every segment_frames frames into
     OUT/segments/NN, then merge every segment into OUT/model.stg when all are finished, evaluate and
     write OUT/metrics.json; returns the metrics ("missing_segments" lists the indices still to train).
@@ -144,8 +318,17 @@ def train_segments(dataset, out, config: TrainConfig, segment_frames: int, indic
         if not quiet:
             print(f"segment {i} of 0-{len(plan) - 1} ({span.frames()}) -> {folder}", file=sys.stderr)
         train(dataset.frame_range(span.start, span.count), folder, config, resume, quiet, check, lpips=lpips,
-              callback=callback)
+              callback=callback, given=given, stop_on_signal=stop_on_signal)
     return finish_segments(dataset, out, config, segment_frames, quiet, lpips)
+
+
+def _check_indices(chosen, plan, num_frames: int, segment_frames: int) -> None:
+    """SegmentError naming the indices of `chosen` outside the plan."""
+    bad = [i for i in chosen if not 0 <= i < len(plan)]
+    if bad:
+        raise SegmentError(f"--segments {','.join(map(str, bad))}: the {num_frames}-frame video has "
+                           f"{len(plan)} segment{'s' if len(plan) > 1 else ''} of {segment_frames} frames "
+                           f"(indices 0-{len(plan) - 1})")
 
 
 def prepare_segments(dataset, out: Path, segment_frames: int, indices: Sequence[int] | None, resume: bool,
@@ -156,11 +339,7 @@ def prepare_segments(dataset, out: Path, segment_frames: int, indices: Sequence[
     are trained afresh); with it, says which finished segments are kept."""
     plan = plan_segments(dataset.num_frames, segment_frames)
     chosen = list(range(len(plan))) if indices is None else sorted(set(indices))
-    bad = [i for i in chosen if not 0 <= i < len(plan)]
-    if bad:
-        raise SegmentError(f"--segments {','.join(map(str, bad))}: the {dataset.num_frames}-frame video has "
-                           f"{len(plan)} segment{'s' if len(plan) > 1 else ''} of {segment_frames} frames "
-                           f"(indices 0-{len(plan) - 1})")
+    _check_indices(chosen, plan, dataset.num_frames, segment_frames)
     try:
         (out / "segments").mkdir(parents=True, exist_ok=True)
     except OSError as e:
@@ -214,7 +393,8 @@ def finish_segments(dataset, out: Path, config: TrainConfig, segment_frames: int
     else:  # the finished segments' own evaluations (of the same files, over their frames), pooled
         result = pooled(heldouts)
         file_bytes = sum(p["file_bytes"] for p in per_segment)
-        print(missing_message(out, plan, missing, segment_frames, dataset.path), file=sys.stderr)
+        settings = f"--iterations {config.iterations}" + (f" --model {config.model}" if config.model != "full" else "")
+        print(missing_message(out, plan, missing, segment_frames, dataset.path, settings), file=sys.stderr)
     metrics = {"heldout": heldout(result), "model": None if model_path is None else str(model_path),
                "segment_frames": segment_frames, "segments": per_segment,
                "missing_segments": [s.index for s in missing],
@@ -236,15 +416,44 @@ def model_frames(player: Player, dataset, name) -> range:
     return range(first, min(end, dataset.num_frames))
 
 
+def check_cameras(player: Player, dataset, name, tolerance: float = 1e-3) -> None:
+    """DataError naming the model and the first camera that differs when the model's stored cameras are
+    not the dataset's (same names; poses within `tolerance` of the rig's size in position and
+    `tolerance` radians; the same focal length relative to the image width, so another --downscale
+    still matches). A model that stores no cameras passes."""
+    stored = {c.name: c for c in player.cameras}
+    if not stored:
+        return
+    cams = dataset.cameras
+    centres = np.stack([c.center for c in cams])
+    scale = max(float(np.linalg.norm(centres - centres.mean(0), axis=1).max()), 1e-6)
+    hint = "pass --any-cameras to evaluate anyway"
+    for i in sorted(set(dataset.test_cameras) | set(dataset.train_cameras)):
+        cam = cams[i]
+        other = stored.get(cam.name)
+        if other is None:
+            raise DataError(f"{name}: was not trained on this dataset: it stores no camera {cam.name!r} (it has "
+                            f"{', '.join(sorted(stored)[:6])}{', ...' if len(stored) > 6 else ''}); {hint}")
+        moved = float(np.linalg.norm(cam.center - other.center)) / scale
+        turned = float(np.abs(cam.R - other.R).max())
+        focal = abs(cam.fx / cam.width - other.fx / other.width) / (cam.fx / cam.width)
+        if moved > tolerance or turned > tolerance or focal > tolerance or cam.model != other.model:
+            raise DataError(f"{name}: was not trained on this dataset: its camera {cam.name!r} differs from the "
+                            f"dataset's (position off by {moved:.3g} of the rig's size, rotation by {turned:.3g}, "
+                            f"focal length by {100 * focal:.3g}%); {hint}")
+
+
 def run_demo(out, config: TrainConfig, resume: bool = False, quiet: bool = False, check: bool = True,
-             segment_frames: int | None = None, segments: Sequence[int] | None = None, callback=None) -> dict:
+             segment_frames: int | None = None, segments: Sequence[int] | None = None, callback=None,
+             given: dict[str, str] | None = None, stop_on_signal: bool = False) -> dict:
     """The demo: the synthetic scene written into OUT/data (once), trained with `config`, and a
     novel-view video OUT/orbit.mp4 along an orbit around the training cameras; returns the metrics (no
     video while segments are missing)."""
     out = Path(out)
     data = ensure_demo_scene(out / "data", announce=not quiet)
     dataset = load_dataset(data, show_progress=not quiet, lazy=True)
-    metrics = train(dataset, out, config, resume, quiet, check, segment_frames, segments, callback=callback)
+    metrics = train(dataset, out, config, resume, quiet, check, segment_frames, segments, callback=callback,
+                    given=given, stop_on_signal=stop_on_signal)
     if metrics.get("missing_segments"):
         return metrics  # OUT/model.stg waits for the other segments (train_segments said which)
     player = Player(out / "model.stg", device="cpu")

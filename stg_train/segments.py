@@ -131,11 +131,13 @@ def worst_check(per_segment: list[dict]) -> dict | None:
     return {"max_abs": max(c["max_abs"] for c in checks), "fraction_over": max(c["fraction_over"] for c in checks)}
 
 
-def missing_message(out: Path, plan: list[Span], missing: list[Span], segment_frames: int, data=None) -> str:
-    """What is missing for OUT/model.stg, and how to finish it."""
+def missing_message(out: Path, plan: list[Span], missing: list[Span], segment_frames: int, data=None,
+                    settings: str = "") -> str:
+    """What is missing for OUT/model.stg, and how to finish it; settings: the run's options that the
+    commands must repeat (e.g. "--iterations 3000 --model lite")."""
     idx = ",".join(str(s.index) for s in missing)
     listing = ", ".join(f"{s.index} ({s.frames()})" for s in missing)
-    cmd = f"stg-train {data or 'DATA'} --out {out} --segment-frames {segment_frames}"
+    cmd = f"stg-train {data or 'DATA'} --out {out} --segment-frames {segment_frames}{' ' + settings if settings else ''}"
     return (f"stg-train: {out / 'model.stg'} not written: segment{'s' if len(missing) > 1 else ''} {listing} "
             f"of {len(plan)} not trained yet. Train {'them' if len(missing) > 1 else 'it'} with "
             f"`{cmd} --segments {idx}` (on any machine; copy the folders into {out / 'segments'}/), then "

@@ -3,7 +3,10 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import os
 import sys
+
+from ..arguments import Parser, error, port
 
 PROG = "stg-view"
 
@@ -20,31 +23,24 @@ Needs the viewer extra: python -m pip install -e ".[viewer]".
 Exit codes: 0 stopped (Ctrl-C), 2 bad model, port in use, no GPU for --device cuda, viser missing."""
 
 
-def _port(text: str) -> int:
-    try:
-        port = int(text)
-    except ValueError:
-        port = -1
-    if not 0 <= port <= 65535:
-        raise argparse.ArgumentTypeError(f"a port is a number 0..65535, got {text!r}")
-    return port
-
-
 def _pixels(text: str) -> int:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-        if w > 0 and h > 0:
-            return w * h
-    except ValueError:
-        pass
-    raise argparse.ArgumentTypeError(f"size must look like 1280x720, got {text!r}")
+    from ..arguments import image_size
+
+    w, h = image_size(text, minimum=8)
+    return w * h
+
+
+def _quality(text: str) -> int:
+    if not text.isdigit() or not 1 <= int(text) <= 100:
+        raise argparse.ArgumentTypeError(f"JPEG quality is a whole number 1..100, got {text!r}")
+    return int(text)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=PROG, description=__doc__.split(":", 1)[1].strip(), epilog=EPILOG,
+    p = Parser(prog=PROG, description=__doc__.split(":", 1)[1].strip(), epilog=EPILOG,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("model", help="the .stg model to show")
-    p.add_argument("--port", type=_port, default=8080, help="port to serve on (default %(default)s)")
+    p.add_argument("--port", type=port, default=8080, help="port to serve on (default %(default)s)")
     p.add_argument("--host", default="127.0.0.1",
                    help="address to listen on (default %(default)s: this machine only)")
     p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"],
@@ -54,22 +50,31 @@ def build_parser() -> argparse.ArgumentParser:
                         "it, keeping its shape; default 1280x720)")
     p.add_argument("--preview-size", type=_pixels, default=320 * 180, metavar="WxH",
                    help="picture size while the camera moves (default 320x180)")
-    p.add_argument("--jpeg-quality", type=int, default=90, metavar="Q", help="JPEG quality 1..100 (default 90)")
+    p.add_argument("--jpeg-quality", type=_quality, default=90, metavar="Q", help="JPEG quality 1..100 (default 90)")
     return p
 
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    if args.preview_size > args.max_size:
+        return error(PROG, "--preview-size: must not be larger than --max-size")
+    if not os.path.isfile(args.model):
+        what = "is a folder, not a .stg model" if os.path.isdir(args.model) else "no such file"
+        return error(PROG, f"{args.model}: {what}")
     if importlib.util.find_spec("viser") is None:
-        print(f"{PROG}: error: the viewer needs viser: python -m pip install 'spacetime-gaussians[viewer]' "
-              "(or -e \".[viewer]\" in a checkout)", file=sys.stderr)
-        return 2
+        return error(PROG, "the viewer needs viser: python -m pip install 'spacetime-gaussians[viewer]' "
+                           "(or -e \".[viewer]\" in a checkout)")
+    if args.device == "cuda":
+        from ..cuda.device import usable
+
+        if not usable():
+            return error(PROG, "--device cuda: numba sees no CUDA GPU here: use --device cpu (or auto)")
     from ..format import FormatError
     from .frames import ViewSettings
     from .server import PortInUse, serve
 
     settings = ViewSettings(max_pixels=args.max_size, preview_pixels=args.preview_size,
-                            jpeg_quality=min(max(args.jpeg_quality, 1), 100))
+                            jpeg_quality=args.jpeg_quality)
 
     def ready(viewer) -> None:
         print(f"{PROG}: serving {args.model} ({viewer.player.kind}, {viewer.player.device}) at {viewer.url} "
@@ -77,9 +82,16 @@ def main(argv=None) -> int:
 
     try:
         serve(args.model, host=args.host, port=args.port, device=args.device, settings=settings, ready=ready)
-    except (FormatError, PortInUse, RuntimeError, ValueError, OSError) as e:
-        print(f"{PROG}: error: {e}", file=sys.stderr)
-        return 2
+    except PortInUse as e:
+        return error(PROG, f"--port {args.port}: {e}: choose another with --port N")
+    except FormatError as e:
+        return error(PROG, str(e))
+    except (RuntimeError, ValueError) as e:
+        return error(PROG, f"--device {args.device}: {e}" if args.device == "cuda" else str(e))
+    except OSError as e:
+        return error(PROG, f"--host {args.host}: {e.strerror or e}")
+    except KeyboardInterrupt:
+        pass
     print(f"{PROG}: stopped", file=sys.stderr)
     return 0
 

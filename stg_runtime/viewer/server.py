@@ -46,7 +46,7 @@ def check_port_free(host: str, port: int) -> None:
             s.bind((host, port))
         except OSError as e:
             if e.errno in (errno.EADDRINUSE, errno.EACCES):
-                raise PortInUse(f"port {port} on {host} is in use (pick another with --port)") from None
+                raise PortInUse(f"port {port} on {host} is in use") from None
             raise
 
 
@@ -92,7 +92,7 @@ class Viewer:
         self.server = viser.ViserServer(host=host, port=port, label="stg-view", verbose=verbose)
         if port and self.server.get_port() != port:  # taken between the check and viser's bind
             self.server.stop()
-            raise PortInUse(f"port {port} on {host} is in use (pick another with --port)")
+            raise PortInUse(f"port {port} on {host} is in use")
         self.host, self.port = host, self.server.get_port()
         self._set_initial_camera()
         self._build_gui()

@@ -1,44 +1,30 @@
-"""What the command lines share: argument types, the dataset options, errors, the figures table."""
+"""What the command lines share: the one-line-error parser and argument types (stg_runtime.arguments),
+the dataset options, the figures table. Imports nothing heavy: `--help` answers at once."""
 from __future__ import annotations
 
 import argparse
-import sys
 
-
-def positive_int(text: str) -> int:
-    value = int(text)
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}")
-    return value
-
-
-def positive_float(text: str) -> float:
-    value = float(text)
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be positive, got {text!r}")
-    return value
-
-
-def error(prog: str, message: str) -> int:
-    """Print `prog: error: message` on stderr; the exit code of bad input, 2."""
-    print(f"{prog}: error: {message}", file=sys.stderr)
-    return 2
+from stg_runtime.arguments import (Parser, error, finite_float, given_options, image_size,  # noqa: F401 (shared)
+                                   nonnegative_int, port, positive_float, positive_int)
 
 
 def add_dataset_options(p: argparse.ArgumentParser, depth_bounds: bool = False) -> None:
-    """--layout, --fps, --test-camera, --downscale and --from-video: how DATA is read; with depth_bounds
+    """--layout, --fps, --test-camera, --downscale, --frames and --from-video: how DATA is read; with depth_bounds
     also --near and --far (check them with check_dataset_options)."""
-    from ..data import LAYOUTS
+    from ..choices import LAYOUTS
 
     p.add_argument("--layout", choices=("auto",) + LAYOUTS, default="auto",
                    help="dataset layout of DATA (default auto: detected from its files)")
-    p.add_argument("--fps", type=float, default=None, metavar="FPS",
+    p.add_argument("--fps", type=positive_float, default=None, metavar="FPS",
                    help="frame rate of the data (default: the videos', else 30 for layouts that store none)")
     p.add_argument("--test-camera", default=None, metavar="NAME",
                    help="camera held out for evaluation (default: cam00 for n3v and reference, cam10 for "
                         "technicolor, the centre camera (camera_0001) for immersive, the first camera by name for rig)")
     p.add_argument("--downscale", type=positive_int, default=1, metavar="K",
                    help="divide the frames' width and height by K (default 1; stg-eval takes the K used in training)")
+    p.add_argument("--frames", type=positive_int, default=None, metavar="N",
+                   help="use only the first N frames of every camera (default: all; needed where the cameras' "
+                        "frame counts differ)")
     p.add_argument("--from-video", action="store_true",
                    help="decode the videos even where lossless PNG frames exist (n3v: camXX.mp4 over "
                         "frames/camXX/*.png; immersive: camera_NNNN.mp4 over camera_NNNN/; rig: videos/ over images/)")
@@ -66,7 +52,7 @@ def dataset_options(args) -> dict:
     """The keyword arguments of stg_train.data.load_dataset from add_dataset_options' arguments (and
     --quiet)."""
     options = dict(layout=args.layout, downscale=args.downscale, from_video=args.from_video, fps=args.fps,
-                   test_camera=args.test_camera, show_progress=not args.quiet)
+                   test_camera=args.test_camera, show_progress=not args.quiet, num_frames=args.frames)
     if getattr(args, "near", None) is not None:
         options["depth_range"] = (args.near, args.far)
     return options

@@ -11,19 +11,11 @@ import os
 import sys
 import warnings
 
-from stg_runtime import format as stg_format
-from stg_runtime.atomic import remove_leftovers
-from stg_runtime.format import FormatError
-from stg_runtime.model import ACTIVATIONS, ATTRIBUTES
-from stg_runtime.player import RenderError
+from .common import Parser, error, finite_float, nonnegative_int, positive_float, positive_int
 
-from ..convert.compress import PRESETS, compress_file, parse_encodings
-from ..convert.gaussians3d import export_ply, import_3dgs_ply
-from ..convert.merge import merge_files
-from ..convert.ply import PLYError
-from ..convert.reference import import_reference
-from ..data import DataError, load_dataset
-from .common import error, positive_float
+#: The compression presets (stg_train.convert.compress.PRESETS, checked by tests/cli), named here so that
+#: --help does not import the compressor.
+PRESET_NAMES = ("lossless", "balanced", "small")
 
 PROG = "stg-convert"
 
@@ -55,25 +47,33 @@ def _file_error(path, e: OSError) -> str:
     return f"{e.filename or path}: {e.strerror or e}"
 
 
-def _writable(path) -> str:
-    """`path` if its folder exists (checked before any work; leftovers of an interrupted write of it are
-    removed); ValueError naming it otherwise."""
+def _writable(path, inputs=()) -> str:
+    """`path` if its folder exists, it is not a folder and it is none of `inputs` (checked before any
+    work; leftovers of an interrupted write of it are removed); ValueError naming it otherwise."""
+    from stg_runtime.atomic import remove_leftovers
+
     folder = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(folder):
         raise ValueError(f"{path}: cannot write: the folder {folder} does not exist")
+    if os.path.isdir(path):
+        raise ValueError(f"{path}: is a folder; name the file to write")
+    for source in inputs:
+        if os.path.abspath(source) == os.path.abspath(path) or (
+                os.path.exists(path) and os.path.exists(source) and os.path.samefile(source, path)):
+            raise ValueError(f"{path}: is also an input; write the output to another file")
     remove_leftovers(folder, os.path.basename(path))
     return path
 
 
 def _level(text: str) -> int:
-    value = int(text)
+    value = int(text) if text.isdigit() else -1
     if not 0 <= value <= 9:
         raise argparse.ArgumentTypeError(f"zlib level must be 0-9, got {text!r}")
     return value
 
 
 def _fraction(text: str) -> float:
-    value = float(text)
+    value = finite_float(text)
     if not 0.0 <= value <= 1.0:
         raise argparse.ArgumentTypeError(f"must be in [0, 1], got {text!r}")
     return value
@@ -98,7 +98,9 @@ _durations = _positive_list(float, "durations")
 
 def build_parser() -> argparse.ArgumentParser:
     fmt = argparse.RawDescriptionHelpFormatter
-    p = argparse.ArgumentParser(prog=PROG, epilog=EPILOG, formatter_class=fmt,
+    from stg_runtime.model import ACTIVATIONS, ATTRIBUTES  # numpy only
+
+    p = Parser(prog=PROG, epilog=EPILOG, formatter_class=fmt,
                                 description="Shrink .stg models, bring models from other tools into the "
                                             ".stg format, export static snapshots, merge segments.")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
@@ -108,7 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
                        epilog=COMPRESS_EPILOG, formatter_class=fmt)
     c.add_argument("input", metavar="IN.stg")
     c.add_argument("output", metavar="OUT.stg")
-    c.add_argument("--preset", choices=list(PRESETS), default="balanced", help="default %(default)s")
+    c.add_argument("--preset", choices=PRESET_NAMES, default="balanced", help="default %(default)s")
     c.add_argument("--encoding", action="append", default=[], metavar="ATTR=MODE",
                    help=f"fix an attribute's encoding, MODE one of f32, f16, u16, u8; ATTR one of "
                         f"{', '.join(ATTRIBUTES)}; repeat or separate with commas (position=u16,features=u8)")
@@ -123,7 +125,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--data", metavar="DATASET",
                    help="dataset folder (N3V layout) the model was trained on: measure the PSNR change "
                         "on its held-out camera against the ground truth")
-    c.add_argument("--downscale", type=int, default=1, metavar="K",
+    c.add_argument("--downscale", type=positive_int, default=1, metavar="K",
                    help="with --data: divide the frames' size by K, as in training (default 1)")
 
     r = sub.add_parser("import-reference", formatter_class=fmt,
@@ -139,7 +141,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="decoder state dict (torch, read with weights_only) of each PLY, same order, "
                         "after the files; full models only (reading needs torch)")
     r.add_argument("--fps", type=positive_float, default=30.0, help="frames per second (default %(default)s)")
-    r.add_argument("--start-frame", type=int, default=0, metavar="N",
+    r.add_argument("--start-frame", type=nonnegative_int, default=0, metavar="N",
                    help="video frame of the first segment's first frame (default 0)")
     r.add_argument("--segment-frames", type=_frames, default=[50], metavar="F[,F...]",
                    help="frames per segment: one count for all, or one per PLY (e.g. 50,50,20; default 50)")
@@ -158,7 +160,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("input", metavar="PLY")
     g.add_argument("output", metavar="OUT.stg")
     g.add_argument("--fps", type=positive_float, default=30.0, help="frames per second (default %(default)s)")
-    g.add_argument("--frames", type=int, default=1, metavar="N", help="frames the static model covers (default 1)")
+    g.add_argument("--frames", type=positive_int, default=1, metavar="N", help="frames the static model covers (default 1)")
     g.add_argument("--cameras", metavar="JSON",
                    help="3DGS cameras.json to store as the model's cameras (default: the one of the 3DGS "
                         "output folder, when found)")
@@ -168,7 +170,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "(INRIA layout) for existing 3DGS viewers.")
     e.add_argument("input", metavar="IN.stg")
     e.add_argument("output", metavar="OUT.ply")
-    e.add_argument("--time", type=float, required=True, metavar="SECONDS", help="time of the snapshot")
+    e.add_argument("--time", type=finite_float, required=True, metavar="SECONDS", help="time of the snapshot")
 
     m = sub.add_parser("merge", help="join files whose segments follow each other",
                        description="Join .stg files holding consecutive segments (same kind and fps, no "
@@ -192,6 +194,12 @@ def main(argv=None) -> int:
     handlers = {"compress": _compress, "import-reference": _import_reference, "import-3dgs": _import_3dgs,
                 "export-ply": _export_ply, "merge": _merge,
                 "export-web": _export_web}
+    from stg_runtime.format import FormatError
+    from stg_runtime.player import RenderError
+
+    from ..convert.ply import PLYError
+    from ..data import DataError
+
     try:
         return handlers[args.command](args, parser)
     except (FormatError, PLYError, DataError, RenderError, ValueError) as e:
@@ -201,7 +209,10 @@ def main(argv=None) -> int:
 
 
 def _compress(args, parser) -> int:
-    _writable(args.output)
+    from ..convert.compress import compress_file, parse_encodings
+    from ..data import load_dataset
+
+    _writable(args.output, [args.input])
     encodings = {}
     for text in args.encoding:
         try:
@@ -227,7 +238,11 @@ def _compress(args, parser) -> int:
 
 
 def _import_reference(args, parser) -> int:
-    plys, out = args.inputs, _writable(args.output)
+    from stg_runtime import format as stg_format
+
+    from ..convert.reference import import_reference
+
+    plys, out = args.inputs, _writable(args.output, [*args.inputs, *(args.decoder or [])])
     frames = args.segment_frames[0] if len(args.segment_frames) == 1 else args.segment_frames
     durations = args.duration[0] if len(args.duration) == 1 else args.duration
     model = import_reference(plys, args.decoder, fps=args.fps, start_frame=args.start_frame,
@@ -240,9 +255,11 @@ def _import_reference(args, parser) -> int:
 
 
 def _import_3dgs(args, parser) -> int:
-    if args.frames <= 0:
-        parser.error("--frames must be positive")
-    _writable(args.output)
+    from stg_runtime import format as stg_format
+
+    from ..convert.gaussians3d import import_3dgs_ply
+
+    _writable(args.output, [args.input, *([args.cameras] if args.cameras else [])])
     model = import_3dgs_ply(args.input, fps=args.fps, num_frames=args.frames, cameras=args.cameras)
     stg_format.save(model, args.output)
     print(f"wrote {args.output}: {model.segments[0].count} Gaussians, {len(model.cameras)} cameras")
@@ -250,7 +267,11 @@ def _import_3dgs(args, parser) -> int:
 
 
 def _export_ply(args, parser) -> int:
-    _writable(args.output)
+    from stg_runtime import format as stg_format
+
+    from ..convert.gaussians3d import export_ply
+
+    _writable(args.output, [args.input])
     model = stg_format.load(args.input)
     try:
         with warnings.catch_warnings(record=True) as caught:
@@ -267,7 +288,9 @@ def _export_ply(args, parser) -> int:
 
 
 def _merge(args, parser) -> int:
-    inputs, out = args.inputs, _writable(args.output)
+    from ..convert.merge import merge_files
+
+    inputs, out = args.inputs, _writable(args.output, args.inputs)
     model = merge_files(inputs, out)
     print(f"wrote {out}: {len(model.segments)} segments, {model.num_frames} frames, "
           f"{sum(s.count for s in model.segments)} Gaussians")

@@ -3,17 +3,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
-from stg_runtime.atomic import write_atomic
-from stg_runtime.format import FormatError
-from stg_runtime.player import Player, RenderError
-
-from ..data import DataError, load_dataset
-from ..metrics import DYNAMIC_THRESHOLD, evaluate_player, heldout, lpips_models
-from ..pipeline import model_frames
-from .common import add_dataset_options, dataset_options, error, format_table
+from .common import Parser, add_dataset_options, dataset_options, error, finite_float, format_table
 
 PROG = "stg-eval"
 
@@ -29,31 +23,60 @@ or vanishes, their shadows) and the static rest; docs/dynamic.md explains the me
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=PROG, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
+    from ..metrics import DYNAMIC_THRESHOLD  # numpy only
+
+    p = Parser(prog=PROG, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
                                 description="Evaluate a .stg model on a dataset's held-out camera.")
     p.add_argument("model", metavar="MODEL", help="the .stg file")
     p.add_argument("data", metavar="DATA", help="the dataset folder it was trained on (any layout of stg-train)")
     p.add_argument("--json", metavar="PATH", help="also write the figures (and per-frame values) as JSON")
     add_dataset_options(p)
-    p.add_argument("--dynamic-threshold", type=float, default=DYNAMIC_THRESHOLD, metavar="X",
+    p.add_argument("--dynamic-threshold", type=_fraction, default=DYNAMIC_THRESHOLD, metavar="X",
                    help="a pixel is dynamic when its ground truth changes by more than X (colour values in "
                         f"[0, 1]) over the frames (default {DYNAMIC_THRESHOLD:g})")
     p.add_argument("--no-lpips", action="store_true",
                    help="skip LPIPS (computed with AlexNet and VGG when the optional lpips package works)")
+    p.add_argument("--any-cameras", action="store_true",
+                   help="evaluate even when the model's stored cameras are not DATA's (by default such a model, "
+                        "trained on other data, is refused)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     return p
+
+
+def _fraction(text: str) -> float:
+    value = finite_float(text)
+    if not 0 <= value <= 1:
+        raise argparse.ArgumentTypeError(f"must be in [0, 1] (colour values), got {text!r}")
+    return value
 
 
 def main(argv=None) -> int:
     """Entry point of `stg-eval`."""
     args = build_parser().parse_args(argv)
+    if args.json and (os.path.isdir(args.json) or str(args.json).endswith(("/", os.sep))):
+        return error(PROG, f"--json {args.json}: is a folder; name the JSON file to write")
+    if args.json and not os.path.isdir(os.path.dirname(os.path.abspath(args.json))):
+        return error(PROG, f"--json {args.json}: the folder {os.path.dirname(os.path.abspath(args.json))} does not exist")
+    if not os.path.isdir(args.data):
+        return error(PROG, f"DATA {args.data}: {'is not a folder' if os.path.exists(args.data) else 'no such folder'}")
+    from stg_runtime.format import FormatError
+    from stg_runtime.player import Player, RenderError
+
+    from ..data import DataError, load_dataset
+    from ..metrics import evaluate_player, heldout, lpips_models
+    from ..pipeline import check_cameras, model_frames
+
     try:
         player = Player(args.model, device="cpu")
+    except IsADirectoryError:
+        return error(PROG, f"{args.model}: is a folder, not a .stg model")
     except (OSError, FormatError) as e:
         return error(PROG, str(e) if isinstance(e, FormatError) else f"{args.model}: {e.strerror or e}")
     try:
         dataset = load_dataset(args.data, **dataset_options(args))
         frames = model_frames(player, dataset, args.model)
+        if not args.any_cameras:
+            check_cameras(player, dataset, args.model)
     except DataError as e:
         return error(PROG, str(e))
     if len(frames) < dataset.num_frames:  # a model of some segments only (stg-train --segments)
@@ -73,6 +96,8 @@ def main(argv=None) -> int:
     summary.update(model=str(args.model), data=str(args.data), file_bytes=size, gaussians=count)
     print(json.dumps(summary))
     if args.json:
+        from stg_runtime.atomic import write_atomic
+
         write_atomic(args.json, json.dumps({**summary, "per_frame": result["per_frame"]}, indent=1) + "\n")
     return 0
 

@@ -3,23 +3,16 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
+from pathlib import Path
 
-from stg_runtime.progress import Progress
-
-from ..synthetic import SyntheticScene, write_immersive, write_n3v
-from .common import error, positive_float, positive_int
+from .common import Parser, error, image_size, positive_float, positive_int
 
 
 def _size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 160x120, got {text!r}") from None
-    if w < 8 or h < 8:
-        raise argparse.ArgumentTypeError(f"image size must be at least 8x8, got {text!r}")
-    return w, h
+    return image_size(text, minimum=8)
 
 
 def _fov(limit: float):
@@ -35,7 +28,7 @@ def _fov(limit: float):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = Parser(
         prog="stg-synth",
         description="Ray trace a small dynamic scene (a textured room with a moving sphere, a spinning box, "
                     "an object that fades in and out and a specular highlight) seen by a forward-facing "
@@ -74,13 +67,23 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    hfov = args.fisheye if args.fisheye is not None else args.pinhole_dome
+    if hfov is not None and args.focal is not None:
+        parser.error("--focal applies to the N3V rig; the dome's focal length follows from HFOV")
+    if os.path.exists(args.out_dir) and not os.path.isdir(args.out_dir):
+        return error("stg-synth", f"{args.out_dir}: is a file, not a folder")
+    parent = next(p for p in Path(args.out_dir).absolute().parents if p.exists())
+    if not parent.is_dir():
+        return error("stg-synth", f"{args.out_dir}: cannot create it: {parent} is a file")
+    from stg_runtime.progress import Progress
+
+    from ..synthetic import SyntheticScene, write_immersive, write_n3v
+
     width, height = args.size
     scene = SyntheticScene(seed=args.seed, duration=args.frames / args.fps)
     start = time.monotonic()
-    hfov = args.fisheye if args.fisheye is not None else args.pinhole_dome
-    if hfov is not None and args.focal is not None:
-        build_parser().error("--focal applies to the N3V rig; the dome's focal length follows from HFOV")
     common = dict(num_cameras=args.cameras, num_frames=args.frames, fps=args.fps, width=width, height=height,
                   png=not args.no_png, supersample=args.supersample)
     try:

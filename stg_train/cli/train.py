@@ -2,21 +2,15 @@
 from __future__ import annotations
 
 import argparse
+import shlex
 import sys
 import time
 from pathlib import Path
 
-from stg_runtime.player import RenderError
-
-from ..data import DataError, load_dataset
-from ..distributed import DistributedError
-from ..data.points import METHODS
-from ..pipeline import DEMO_SCENE, DEMO_TRAINING, run_demo, train
-from ..render import resolve_backend
-from ..threads import set_cpu_threads
-from ..segments import SegmentError, parse_segment_list
-from ..trainer import MOTION_INITS, TrainConfig
-from .common import add_dataset_options, check_dataset_options, dataset_options, error, format_table, positive_int
+from ..choices import INIT_METHODS, MOTION_INITS
+from ..config import DEMO_SCENE, DEMO_TRAINING, TrainConfig
+from .common import (Parser, add_dataset_options, check_dataset_options, dataset_options, error, format_table,
+                     given_options, nonnegative_int, port, positive_int)
 
 PROG = "stg-train"
 
@@ -44,21 +38,26 @@ Exit codes: 0 done, 2 bad data or arguments."""
 
 
 def _segment_list(text: str) -> list[int]:
+    from ..segments import parse_segment_list
+
     try:
         return parse_segment_list(text)
     except ValueError as e:
         raise argparse.ArgumentTypeError(str(e)) from None
 
 
-def _port(text: str) -> int:
-    if not text.isdigit() or int(text) > 65535:
-        raise argparse.ArgumentTypeError(f"a port is a number 0..65535, got {text!r}")
-    return int(text)
+#: TrainConfig field -> the option that sets it (what a resumed run names when it refuses or applies one).
+CONFIG_OPTIONS = {"model": "--model", "iterations": "--iterations", "batch": "--batch", "num_points": "--points",
+                  "init": "--init", "init_every": "--init-every", "motion_init": "--motion-init", "seed": "--seed",
+                  "checkpoint_every": "--checkpoint-every", "guided": "--no-guided", "device": "--device",
+                  "splatter": "--splatter"}
+#: argparse dest -> TrainConfig field, where they differ.
+_DEST_FIELDS = {"points": "num_points", "no_guided": "guided"}
 
 
 def build_parser() -> argparse.ArgumentParser:
     d = TrainConfig()
-    p = argparse.ArgumentParser(
+    p = Parser(
         prog=PROG, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Learn Spacetime Gaussians from synchronised multi-view video and write a .stg model.")
     p.add_argument("data", nargs="?", metavar="DATA", help="dataset folder (see below); omit with --demo")
@@ -79,7 +78,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="where the parameters live and rendering runs (default cpu)")
     p.add_argument("--resume", action="store_true",
                    help="continue from OUT/checkpoint.pt with its settings (a killed run resumed this way "
-                        "reaches the same state as an uninterrupted one); starts afresh if there is none")
+                        "reaches the same state as an uninterrupted one); starts afresh if there is none. "
+                        "--iterations, --checkpoint-every, --threads, --device, --splatter, --viewer and --quiet "
+                        "may change (the run says so); --model, --batch, --points, --init, --init-every, "
+                        "--motion-init, --seed and --no-guided must match the checkpoint's")
+    p.add_argument("--force", action="store_true",
+                   help="train from scratch even where OUT holds a run, replacing its checkpoint.pt, model.stg and "
+                        "metrics.json (without --force or --resume such a run is refused)")
     p.add_argument("--segment-frames", type=positive_int, default=50, metavar="N",
                    help="frames per segment: a longer video is trained as consecutive independent models of N "
                         "frames (a last piece under N/2 frames joins the segment before it), one folder "
@@ -108,7 +113,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="initial Gaussians: the most SfM points kept (a random subset beyond), or the number "
                         f"sampled in the cameras' common view volume (default {d.num_points}, the demo's "
                         f"{DEMO_TRAINING['num_points']} with --demo)")
-    p.add_argument("--init", choices=METHODS, default="auto",
+    p.add_argument("--init", choices=INIT_METHODS, default="auto",
                    help="initial points: sfm = SIFT features matched and triangulated with the known poses "
                         "(pycolmap, CPU) on every --init-every'th frame, cached in DATA/.stg_cache/sfm; volume = "
                         "sampled in the cameras' common view volume at photo-consistent depths between the "
@@ -123,7 +128,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "the optical flow of its frame in the training cameras that see it (points whose flow is "
                         "under half a pixel stay at rest); zero = at rest, as the reference implementation "
                         "(default %(default)s; docs/dynamic.md compares them)")
-    p.add_argument("--seed", type=int, default=d.seed, help="random seed (default %(default)s)")
+    p.add_argument("--seed", type=nonnegative_int, default=d.seed, help="random seed (default %(default)s)")
     add_dataset_options(p, depth_bounds=True)
     p.add_argument("--threads", type=positive_int, default=None, metavar="N",
                    help="CPU threads for torch and the numba splatter (default: the cores; with --ray, the CPUs "
@@ -133,7 +138,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-guided", action="store_true",
                    help="no guided sampling (new Gaussians along the rays of high-error patches, the paper's "
                         "Sec. 4.4; on by default)")
-    p.add_argument("--viewer", nargs="?", type=_port, const=8080, default=None, metavar="PORT",
+    p.add_argument("--viewer", nargs="?", type=port, const=8080, default=None, metavar="PORT",
                    help="show the model in the browser while it trains, at http://127.0.0.1:PORT (default "
                         "8080; needs the viewer extra): the current parameters every few seconds, and the "
                         "step, loss, PSNR and Gaussians (docs/viewer.md)")
@@ -159,59 +164,122 @@ def _config(args, splatter: str) -> TrainConfig:
     return base
 
 
-def main(argv=None) -> int:
-    """Entry point of `stg-train`."""
-    parser = build_parser()
-    args = parser.parse_args(argv)
+def _given(args, dests: set[str]) -> dict[str, str]:
+    """TrainConfig field -> "--option value" for the settings given on the command line."""
+    given = {}
+    for dest in dests:
+        name = _DEST_FIELDS.get(dest, dest)
+        if name in CONFIG_OPTIONS:
+            value = getattr(args, dest)
+            given[name] = CONFIG_OPTIONS[name] + ("" if isinstance(value, bool) else f" {value}")
+    return given
+
+
+def _check_arguments(parser: argparse.ArgumentParser, args) -> None:
+    """Every check that needs no data and no heavy import: parser.error (one line, exit 2)."""
+    if args.demo and args.data is not None:
+        parser.error(f"give a DATA folder or --demo, not both (got {args.data!r} and --demo)")
     if not args.demo and args.data is None:
         parser.error("give a DATA folder (or --demo)")
     if not args.demo and args.out is None:
         parser.error("--out DIR is required")
+    if args.resume and args.force:
+        parser.error("--resume continues the run in OUT, --force replaces it: give one")
     check_dataset_options(parser, args)
     if (args.ray is not None or args.gpus is not None) and args.demo:
         parser.error("--ray and --gpus train a DATA folder, not --demo")
+    if (args.ray is not None or args.gpus is not None) and args.viewer is not None:
+        parser.error(f"--viewer shows a run of this process, but with {'--ray' if args.ray is not None else '--gpus'} "
+                     "the segments train in worker processes: leave out --viewer (or the parallel option)")
     if args.gpus is not None and args.device != "cuda":
-        return error(PROG, "--gpus trains on GPUs: add --device cuda (or use --ray for CPU workers)")
+        parser.error("--gpus trains on GPUs: add --device cuda (or use --ray for CPU workers)")
+
+
+def _resume_command(argv) -> str:
+    """The command line that continues this run: the same arguments, with --resume (and without --force)."""
+    args = [a for a in (sys.argv[1:] if argv is None else argv) if a != "--force"]
+    return shlex.join([PROG, *args, *([] if "--resume" in args else ["--resume"])])
+
+
+def main(argv=None) -> int:
+    """Entry point of `stg-train`."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    _check_arguments(parser, args)
+    given = _given(args, given_options(parser, argv))
+    out = Path(args.out or "stg-demo")
+    try:
+        return _run(args, out, given, argv)
+    except KeyboardInterrupt:  # outside the training steps (those stop cleanly: pipeline.Interrupted)
+        ckpt = out / "checkpoint.pt"
+        if ckpt.exists() or (out / "segments").is_dir():
+            print(f"\n{PROG}: interrupted; continue with: {_resume_command(argv)}", file=sys.stderr)
+        else:
+            print(f"\n{PROG}: interrupted before the first checkpoint: nothing to resume", file=sys.stderr)
+        return 130
+
+
+def _run(args, out: Path, given: dict[str, str], argv) -> int:
+    """Validate what needs the data and the heavy modules, then train; the exit code."""
+    from stg_runtime.player import RenderError
+
+    from ..data import DataError, load_dataset
+    from ..distributed import DistributedError
+    from ..pipeline import Interrupted, claim_output, run_demo, train
+    from ..render import resolve_backend
+    from ..segments import SegmentError
+    from ..threads import set_cpu_threads
+
     try:
         splatter = resolve_backend(args.splatter, args.device)
     except ValueError as e:
-        return error(PROG, str(e))
+        return error(PROG, f"--splatter {args.splatter}: {e}")
+    if args.threads and args.ray is None:
+        from numba import config as numba_config
+
+        if args.threads > numba_config.NUMBA_NUM_THREADS:
+            return error(PROG, f"--threads {args.threads}: this machine runs at most {numba_config.NUMBA_NUM_THREADS} "
+                               "(numba's NUMBA_NUM_THREADS, the CPU threads)")
     import torch
 
     if args.device == "cuda" and args.ray is None and not torch.cuda.is_available():
-        return error(PROG, "--device cuda: torch sees no CUDA device")
-    if args.threads:
-        set_cpu_threads(args.threads)
+        return error(PROG, "--device cuda: torch sees no CUDA device (train on the CPU with --device cpu)")
     config = _config(args, splatter)
     options = dict(resume=args.resume, quiet=args.quiet, check=not args.no_check,
                    segment_frames=args.segment_frames, segments=args.segments)
-    if args.viewer is not None:
-        try:
-            from ..viewer import TrainingViewer
-            options["callback"] = TrainingViewer(args.viewer, quiet=args.quiet)
-        except ImportError as e:
-            return error(PROG, f"--viewer needs the viewer extra (python -m pip install -e \".[viewer]\"): {e}")
-        except OSError as e:  # the port is taken
-            return error(PROG, f"--viewer: {e}")
     start = time.perf_counter()
+    viewer = None
     try:
+        dataset = None if args.demo else load_dataset(args.data, lazy=True, **dataset_options(args))
+        claim_output(out, dataset, args.segment_frames, args.segments, resume=args.resume, force=args.force)
+        if args.threads:
+            set_cpu_threads(args.threads)
+        if args.viewer is not None:
+            try:
+                from ..viewer import TrainingViewer
+                viewer = TrainingViewer(args.viewer, quiet=args.quiet)
+            except ImportError as e:
+                return error(PROG, f"--viewer needs the viewer extra (python -m pip install -e \".[viewer]\"): {e}")
+            except OSError as e:  # the port is taken
+                return error(PROG, f"--viewer {args.viewer}: {e}: choose another with --viewer PORT")
         if args.demo:
-            out = Path(args.out or "stg-demo")
-            metrics = run_demo(out, config, **options)
-        else:
-            dataset = load_dataset(args.data, lazy=True, **dataset_options(args))
-            if args.ray is not None or args.gpus is not None:
-                from ..distributed.run import train_parallel
+            metrics = run_demo(out, config, callback=viewer, given=given, stop_on_signal=True, **options)
+        elif args.ray is not None or args.gpus is not None:
+            from ..distributed.run import train_parallel
 
-                metrics = train_parallel(dataset, Path(args.out), config, ray=args.ray, gpus=args.gpus,
-                                         threads=args.threads, **options)
-            else:
-                metrics = train(dataset, Path(args.out), config, **options)
+            metrics = train_parallel(dataset, out, config, ray=args.ray, gpus=args.gpus, threads=args.threads,
+                                     **options)
+        else:
+            metrics = train(dataset, out, config, callback=viewer, given=given, stop_on_signal=True, **options)
+    except Interrupted as e:
+        print(f"\n{PROG}: interrupted at step {e.step} of {e.iterations}; saved {e.checkpoint}; continue with: "
+              f"{_resume_command(argv)}", file=sys.stderr)
+        return 130
     except (DataError, SegmentError, RenderError, DistributedError) as e:
         return error(PROG, str(e))
     finally:
-        if options.get("callback") is not None:
-            options["callback"].close()
+        if viewer is not None:
+            viewer.close()
     if metrics.get("missing_segments"):
         return 0  # OUT/model.stg waits for the other segments (the pipeline said which)
     print(format_table(metrics["heldout"], metrics["file_bytes"], metrics["gaussians"]))

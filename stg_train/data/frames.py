@@ -348,8 +348,8 @@ def common_frames(root, paths, labels, counts, sizes, num_frames: int | None = N
     if num_frames is None:
         if len(set(counts)) > 1:
             listing = ", ".join(f"{lab}: {c} frames" for lab, c in zip(labels, counts))
-            raise DataError(f"{root}: cameras have different frame counts ({listing}); pass num_frames to use "
-                            f"the first {min(counts)}")
+            raise DataError(f"{root}: cameras have different frame counts ({listing}); use the first "
+                            f"{min(counts)} with --frames {min(counts)} (num_frames= in Python)")
         num_frames = counts[0]
     else:
         short = [(path, c) for path, c in zip(paths, counts) if c < num_frames]
@@ -408,7 +408,7 @@ def build_dataset(root: Path, layout: str, cameras: Sequence[Camera] | Callable[
                             f"{cam.width}x{cam.height}")
     out_w, out_h = width // downscale, height // downscale
     if out_w < 1 or out_h < 1:
-        raise ValueError(f"downscale {downscale} leaves no pixels of {width}x{height} frames")
+        raise DataError(f"{root}: --downscale {downscale} leaves no pixels of its {width}x{height} frames")
     scaled = [replace(c, fx=c.fx / downscale, fy=c.fy / downscale, cx=c.cx / downscale, cy=c.cy / downscale,
                       width=out_w, height=out_h) for c in cameras]  # the camera model and distortion are kept
     if fps is None:

@@ -136,8 +136,7 @@ def test_cli_errors_name_the_problem(tmp_path, capsys):
     assert render_main([str(tmp_path / "broken.stg"), "--out", str(tmp_path / "o")]) == 2
     assert "broken.stg" in capsys.readouterr().err
     stg_format.save(demo_model("lite", num_frames=2), tmp_path / "m.stg")
-    with pytest.raises(SystemExit):
-        render_main([str(tmp_path / "m.stg"), "--out", str(tmp_path / "o"), "--camera", "99"])
+    assert render_main([str(tmp_path / "m.stg"), "--out", str(tmp_path / "o"), "--camera", "99"]) == 2
     assert "has 9 cameras" in capsys.readouterr().err
 
 
