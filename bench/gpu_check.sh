@@ -1,14 +1,19 @@
 #!/usr/bin/env bash
-# Every check that needs a real NVIDIA GPU, in one run of at most GPU_CHECK_SECONDS (default 400; each
-# step has its own time limit and none starts past the budget), with its logs in one folder (10 files):
+# Every check that needs a real NVIDIA GPU, in one run of at most GPU_CHECK_SECONDS (default 520; each
+# step has its own time limit and none starts past the budget), with its logs in one folder (12 files):
 #
 #   bash bench/gpu_check.sh [OUTDIR]      (default: $OUT if set, else out/gpu_check)
 #
 # 1. the GPU tests: tests/runtime/cuda/ (test_kernels.py and test_sort.py run their kernels on the GPU,
 #    not the simulator; test_launch.py, test_compile.py);
-# 2. bench/render.py --device cuda at the paper's N3V test size (200k Gaussians, 1352x1014): FPS of
-#    lite and full models, the steps, both device sorts and decoders; bench/gpu_profile.py: each
-#    kernel's GPU time against the frame's wall-clock time, and the host's cost per call;
+# 2. bench/render.py --device cuda at the paper's N3V test size (200k Gaussians, 1352x1014) on the random
+#    scene (the scene of the earlier figures): FPS of lite and full models, the steps, both device sorts
+#    and decoders; then the same on scenes like trained ones (render_like_trained.log: like_trained_model
+#    at 100k / 200k / 500k Gaussians, 640x360 and 1352x1014, each figure with its layers per pixel), and
+#    on the trained demo model when out/bench_cache/demo-{lite,full}/model.stg were carried along
+#    (render_trained.log; `python bench/render.py --scene trained` makes them here);
+#    bench/gpu_profile.py: each kernel's GPU time against the frame's wall-clock time, and the host's
+#    cost per call;
 # 3. gsplat: its CUDA kernels are built (gsplat_build.log) in the background from the start, on the
 #    cores our steps leave idle; then tests/train/test_render_gsplat.py compares it with the torch splatter,
 #    and the render benchmark runs again with gsplat's rasterization beside ours;
@@ -33,7 +38,7 @@ if ! command -v nvidia-smi >/dev/null; then
 fi
 out=${1:-${OUT:-out/gpu_check}}
 mkdir -p "$out"
-budget=${GPU_CHECK_SECONDS:-400}
+budget=${GPU_CHECK_SECONDS:-520}
 export PYTHONUNBUFFERED=1 PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
 py=${PYTHON:-python3}
 
@@ -73,7 +78,14 @@ build=$!
 # Ours first, so that gsplat's build cannot cost our figures.
 step 100 tests.log $py -m pytest -q -rs -p no:cacheprovider tests/runtime/cuda
 status=$?
-step 80 render.log $py bench/render.py --device cuda --gaussians 200000 --size 1352x1014 --repeats 30 --no-gsplat
+step 80 render.log $py bench/render.py --device cuda --scene random --gaussians 200000 --size 1352x1014 --repeats 30 \
+    --no-gsplat
+step 120 render_like_trained.log $py bench/render.py --device cuda --scene like-trained --gaussians 100000,200000,500000 \
+    --size 640x360,1352x1014 --repeats 20 --no-gsplat
+if [[ -f out/bench_cache/demo-lite/model.stg && -f out/bench_cache/demo-full/model.stg ]]; then
+    step 40 render_trained.log $py bench/render.py --device cuda --scene trained --size 640x360,1352x1014 \
+        --repeats 20 --no-gsplat
+fi
 step 60 profile.log $py bench/gpu_profile.py --gaussians 200000 --size 1352x1014
 
 # gsplat: wait for its build (leaving two minutes for what follows), its GPU test, then the render
@@ -81,7 +93,7 @@ step 60 profile.log $py bench/gpu_profile.py --gaussians 200000 --size 1352x1014
 while kill -0 $build 2>/dev/null && ((SECONDS < budget - 120)); do sleep 2; done
 kill $build 2>/dev/null && echo "gsplat build stopped: out of time" >>"$out/gsplat_build.log"
 step 50 tests_gsplat.log $py -m pytest -q -rs -p no:cacheprovider tests/train/test_render_gsplat.py
-step 70 render_gsplat.log $py bench/render.py --device cuda --gaussians 200000 --size 1352x1014 --repeats 20
+step 70 render_gsplat.log $py bench/render.py --device cuda --scene random --gaussians 200000 --size 1352x1014 --repeats 20
 
 if [[ ${GPU_CHECK_SCALE:-1} != 0 ]]; then
     step 220 scale.log $py bench/scale.py --frames 50 --no-cpu --no-whole --steps 10 --threads 16 \
