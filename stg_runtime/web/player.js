@@ -54,7 +54,8 @@ export class StgPlayer {
     this.fpsStart = performance.now();
     this.lastTick = null;
     this.error = null;
-    this.stats = {};
+    this.stats = { firstFrameMs: null };  // ms from the page's start to the first frame on the canvas
+    this.framesTotal = 0;
     this.drawn = null;          // what the canvas shows: view, time and order
     this.continuous = false;    // draw every animation frame even when nothing changed (benchmarks)
     this.raf = requestAnimationFrame((now) => this.tick(now));
@@ -221,7 +222,12 @@ export class StgPlayer {
       if (drawn === this.drawn && !this.continuous) return;  // nothing changed since the last frame
       this.drawn = drawn;
       this.renderer.draw(gpu, this.cam, tau, "canvas");
+      if (this.stats.firstFrameMs === null) {  // ms since the page's navigation began, the frame finished
+        this.renderer.gl.finish();
+        this.stats.firstFrameMs = performance.now();
+      }
       this.frames++;
+      this.framesTotal++;
       this.onFrame(this);
     } catch (e) {
       this.fail(e);

@@ -123,8 +123,8 @@ export class Renderer {
       const padded = new Float32Array(wrows * WEIGHTS_WIDTH);
       padded.set(w);
       gpu.weights = this.floatTexture(gl.R32F, WEIGHTS_WIDTH, wrows, padded);
-      const shape = d.decoder.weights.map((x, k) => `${x.rows}x${x.cols}${d.decoder.biases[k] ? "b" : ""}`).join(",");
-      gpu.colour = this.program(`colour full ${shape} ${d.activation}`, colourShaders("full", d.decoder, d.activation));
+      const sources = colourShaders("full", d.decoder, d.activation);  // per decoder: small ones are compiled in
+      gpu.colour = this.program(sources.fragment, sources);
     } else {
       gpu.colour = this.program(`colour ${model.kind}`, colourShaders(model.kind, null, null));
     }

@@ -222,7 +222,30 @@ void main() {
   gl_Position = vec4(p, 0.0, 1.0);
 }`;
 
+/** The decoder as straight-line code with its weights as constants (small decoders, such as the
+ * reference 12 -> 6 -> 3: the compiler sees every multiply; software GL runs it several times faster
+ * than loops over a weights texture). */
+function inlineMlpCode(mlp) {
+  const lit = (v) => { const t = Math.fround(v).toPrecision(9); return t.includes("e") || t.includes(".") ? t : `${t}.0`; };
+  let inputs = Array.from({ length: mlp.inputWidth }, (_, i) => `x[${i}]`), code = "";
+  mlp.weights.forEach((w, k) => {
+    const last = k === mlp.weights.length - 1, b = mlp.biases[k], names = [];
+    for (let o = 0; o < w.rows; o++) {
+      const terms = [b ? lit(b[o]) : "0.0"];
+      for (let i = 0; i < w.cols; i++) if (w.data[o * w.cols + i] !== 0) terms.push(`${lit(w.data[o * w.cols + i])} * ${inputs[i]}`);
+      const sum = terms.join(" + ").replace(/\+ -/g, "- ");
+      code += `  float l${k}_${o} = ${last ? sum : `max(${sum}, 0.0)`};\n`;
+      names.push(`l${k}_${o}`);
+    }
+    inputs = names;
+  });
+  return `${code}  vec3 y = vec3(${inputs.join(", ")});\n`;
+}
+
+export const INLINE_WEIGHTS = 4096;  // decoders with at most this many weights are compiled in
+
 function mlpCode(mlp) {
+  if (mlpWeights(mlp).length <= INLINE_WEIGHTS) return inlineMlpCode(mlp);
   // The decoder's layers as loops over the weights texture; x (C + 3 inputs) -> y (3).
   const width = Math.max(...mlp.weights.map((w) => Math.max(w.rows, w.cols)));
   let code = `  float h[${width}];\n  float g[${width}];\n  for (int i = 0; i < ${mlp.inputWidth}; i++) h[i] = x[i];\n`;
