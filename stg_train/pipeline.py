@@ -274,7 +274,6 @@ def train(dataset, out, config: TrainConfig, resume: bool = False, quiet: bool =
     if segment_frames and (segments is not None or len(plan_segments(dataset.num_frames, segment_frames)) > 1):
         return train_segments(dataset, out, config, segment_frames, segments, resume, quiet, check, callback,
                               given, stop_on_signal)
-    lpips = _lpips(quiet) if lpips is None else lpips
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     remove_leftovers(out)  # of a killed run: its checkpoint, model or metrics being written
@@ -285,6 +284,7 @@ def train(dataset, out, config: TrainConfig, resume: bool = False, quiet: bool =
         if resume and not quiet:
             print(f"no checkpoint in {out}: starting a new run", file=sys.stderr)
         trainer = new_trainer(dataset, config, out, quiet)
+    lpips = _lpips(quiet) if lpips is None else lpips  # (said after the run's own settings and notices)
     if trainer.step < trainer.config.iterations:
         _run_training(trainer, ckpt, quiet, callback, stop_on_signal)
     report = export_trainer(trainer, out / "model.stg", check=check)
