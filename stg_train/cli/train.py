@@ -99,7 +99,7 @@ def build_parser() -> argparse.ArgumentParser:
                           help="train the segments in parallel as tasks on a Ray cluster: ADDRESS (host:port or "
                                "ray://host:port), or auto (the default when the flag has no value: RAY_ADDRESS, "
                                "else a cluster started here with `ray start`, else a new local Ray); one GPU per "
-                               "segment with --device cuda, else --threads CPUs (default 1). DATA and OUT must be "
+                               "segment with --device cuda, else --threads CPUs (1 when not given). DATA and OUT must be "
                                "on storage every node sees (checked). Needs pip install -e \".[distributed]\"; "
                                "see docs/distributed.md")
     parallel.add_argument("--gpus", default=None, metavar="auto|LIST",
@@ -165,7 +165,8 @@ def _config(args, splatter: str) -> TrainConfig:
 
 
 def _given(args, dests: set[str]) -> dict[str, str]:
-    """TrainConfig field -> "--option value" for the settings given on the command line."""
+    """TrainConfig field -> its option and value as given (e.g. "--iterations 500") for the settings on the
+    command line."""
     given = {}
     for dest in dests:
         name = _DEST_FIELDS.get(dest, dest)
