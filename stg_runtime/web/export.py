@@ -16,7 +16,7 @@ from ..format import DEFAULT_LIMITS, Limits, load
 
 #: The player's files, in the package and in an exported folder.
 PLAYER_FILES = ("index.html", "app.js", "player.js", "renderer.js", "shaders.js", "controls.js", "sort-worker.js",
-                "stg-format.js", "onnx-mlp.js", "sha256.js")
+                "stream.js", "stg-format.js", "onnx-mlp.js", "sha256.js")
 
 
 def player_file(name: str) -> bytes:

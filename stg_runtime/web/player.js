@@ -12,8 +12,8 @@
 // Each displayed frame uses the latest depth order the sort worker returned: it may be a few frames old
 // while the view or the time changes (docs/web.md, "Sorting"); snapshot() always waits for its own.
 
-import { DEFAULT_LIMITS, FormatError, PREFIX_SIZE, decodeSegment, fileSection, parseCamera, parseHeader, readPrefix,
-  readStg, segmentAt, verifyChecksum } from "./stg-format.js";
+import { DEFAULT_LIMITS, FormatError, parseCamera, readStg, segmentAt } from "./stg-format.js";
+import { openRanged } from "./stream.js";
 import { Renderer } from "./renderer.js";
 
 function cameraJson(c) {
@@ -39,6 +39,8 @@ export class StgPlayer {
     this.worker.onerror = (e) => this.fail(new Error(`the sort worker failed: ${e.message}`));
     this.model = null;
     this.gpu = new Map();           // segment index -> uploaded segment
+    this.loading = new Map();
+    this.file = null;               // a RangedFile (stream.js) when segments arrive by range requests
     this.pending = new Map();       // sort id -> resolve
     this.nextId = 1;
     this.inFlight = 0;
@@ -73,23 +75,27 @@ export class StgPlayer {
     const started = performance.now();
     try {
       this.reset();
-      let bytes;
+      let model;
       if (typeof source === "string") {
         name = name || decodeURIComponent(new URL(source, location.href).pathname.split("/").pop() || source);
         this.onStatus(`fetching ${name}`);
-        const response = await fetch(source);
-        if (!response.ok) throw new FormatError(`${name}: HTTP ${response.status} ${response.statusText}`);
-        bytes = new Uint8Array(await response.arrayBuffer());
-      } else if (source instanceof Blob) {
-        name = name || source.name || "<file>";
-        bytes = new Uint8Array(await source.arrayBuffer());
+        const opened = await openRanged(source, name, this.limits);  // segments by range requests where served
+        model = opened.model;
+        this.file = opened.file || null;
+        this.stats.bytes = opened.file ? opened.file.sentBytes : opened.whole.length;
       } else {
-        bytes = source instanceof Uint8Array ? source : new Uint8Array(source);
-        name = name || "<bytes>";
+        let bytes;
+        if (source instanceof Blob) {
+          name = name || source.name || "<file>";
+          bytes = new Uint8Array(await source.arrayBuffer());
+        } else {
+          bytes = source instanceof Uint8Array ? source : new Uint8Array(source);
+          name = name || "<bytes>";
+        }
+        this.onStatus(`reading ${name}`);
+        model = await readStg(bytes, name, this.limits);
+        this.stats.bytes = bytes.length;
       }
-      this.stats.bytes = bytes.length;
-      this.onStatus(`reading ${name}`);
-      const model = await readStg(bytes, name, this.limits);
       this.model = model;
       this.stats.loadMs = performance.now() - started;
       this.t = model.startTime;
@@ -105,6 +111,9 @@ export class StgPlayer {
   reset() {
     for (const gpu of this.gpu.values()) this.renderer.release(gpu);
     this.gpu.clear();
+    this.loading = new Map();       // segment index -> Promise of its upload
+    this.shownSegment = -1;
+    this.file = null;
     this.model = null;
     this.error = null;
     this.sortedFor = null;
@@ -148,15 +157,53 @@ export class StgPlayer {
   play() { this.playing = true; }
   pause() { this.playing = false; }
 
-  /** The uploaded segment showing the current time (uploading it on first use), and tau. */
+  /** Segment i decoded (fetched first when the file arrives by ranges) and uploaded; a Promise. */
+  ensureSegment(i) {
+    if (this.gpu.has(i)) return Promise.resolve(this.gpu.get(i));
+    if (!this.loading.has(i)) {
+      const model = this.model;
+      const ready = (this.file ? this.file.segment(i) : Promise.resolve(model.segments[i].decoded)).then(() => {
+        if (model !== this.model) return null;  // another model was loaded meanwhile
+        const s = model.segments[i];
+        const gpu = this.renderer.upload(model, i);
+        this.gpu.set(i, gpu);
+        this.worker.postMessage({ type: "segment", key: i, count: s.count, positionDegree: s.positionDegree,
+          opacity: s.decoded.opacity, t_center: s.decoded.t_center, t_scale: s.decoded.t_scale, position: s.decoded.position });
+        this.loading.delete(i);
+        return gpu;
+      });
+      ready.catch((e) => { this.loading.delete(i); this.fail(e); });
+      this.loading.set(i, ready);
+    }
+    return this.loading.get(i);
+  }
+
+  /** Keep segments i - 1 .. i + 1 on the GPU (and decoded, for ranged files); fetch i + 1 ahead. */
+  keepAround(i) {
+    for (const [k, gpu] of this.gpu) {
+      if (Math.abs(k - i) <= 1) continue;
+      this.renderer.release(gpu);
+      this.gpu.delete(k);
+      this.worker.postMessage({ type: "forget", key: k });
+      if (this.file) this.file.release(k);
+    }
+    if (i + 1 < this.model.segments.length) this.ensureSegment(i + 1).catch(() => {});
+  }
+
+  /** The uploaded segment showing the current time and tau, or null while it is being fetched. */
   current() {
     const { index, tau } = segmentAt(this.model, this.t);
     if (!this.gpu.has(index)) {
-      const s = this.model.segments[index];
-      this.gpu.set(index, this.renderer.upload(this.model, index));
-      this.worker.postMessage({ type: "segment", key: index, count: s.count, positionDegree: s.positionDegree,
-        opacity: s.decoded.opacity, t_center: s.decoded.t_center, t_scale: s.decoded.t_scale, position: s.decoded.position });
+      this.ensureSegment(index).catch(() => {});
+      this.onStatus(`loading segment ${index + 1} of ${this.model.segments.length}`);
+      this.waiting = true;
+      return null;
     }
+    if (index !== this.shownSegment) {
+      this.shownSegment = index;
+      this.keepAround(index);
+    }
+    if (this.waiting) { this.waiting = false; this.onStatus(""); }
     return { gpu: this.gpu.get(index), index, tau };
   }
 
@@ -182,7 +229,9 @@ export class StgPlayer {
   /** ImageData of a complete frame at the camera's own size, sorted for exactly this camera and time. */
   async snapshot() {
     if (!this.model) throw new Error("no model loaded");
-    const { gpu, index, tau } = this.current();
+    const { index, tau } = segmentAt(this.model, this.t);
+    const gpu = await this.ensureSegment(index);
+    if (this.error) throw new Error(this.error);
     const cam = this.cam;
     const id = this.requestSort(index, tau);
     const result = await new Promise((resolve) => this.pending.set(id, resolve));
@@ -211,7 +260,9 @@ export class StgPlayer {
         this.fpsStart = now;
         this.onFrame(this);
       }
-      const { gpu, index, tau } = this.current();
+      const now_ = this.current();
+      if (!now_) return;
+      const { gpu, index, tau } = now_;
       const key = `${index} ${tau} ${this.cam.worldToCamera.join(",")}`;
       if (key !== this.sortedFor && !this.inFlight) {
         this.sortedFor = key;

@@ -5,6 +5,9 @@ from __future__ import annotations
 import base64
 import functools
 import http.server
+import io
+import os
+import re
 import shutil
 import socketserver
 import tempfile
@@ -35,6 +38,37 @@ def missing() -> str | None:
 class _Quiet(http.server.SimpleHTTPRequestHandler):
     def log_message(self, *args):
         pass
+
+
+class RangeHandler(_Quiet):
+    """A static server that also answers `Range: bytes=A-B` with 206 (as nginx, Apache or any CDN do;
+    Python's http.server does not), and records what it sent: (path, bytes) per response."""
+
+    sent: list = []
+
+    def send_head(self):
+        path = self.translate_path(self.path)
+        match = re.fullmatch(r"bytes=(\d+)-(\d*)", (self.headers.get("Range") or "").strip())
+        if not match or not os.path.isfile(path):
+            head = super().send_head()
+            if head is not None and os.path.isfile(path):
+                type(self).sent.append((self.path, os.path.getsize(path)))
+            return head
+        size = os.path.getsize(path)
+        start, end = int(match[1]), min(int(match[2]) if match[2] else size - 1, size - 1)
+        if start >= size:
+            self.send_error(416)
+            return None
+        with open(path, "rb") as f:
+            f.seek(start)
+            data = f.read(end - start + 1)
+        self.send_response(206)
+        self.send_header("Content-Type", self.guess_type(path))
+        self.send_header("Content-Range", f"bytes {start}-{end}/{size}")
+        self.send_header("Content-Length", str(len(data)))
+        self.end_headers()
+        type(self).sent.append((self.path, len(data)))
+        return io.BytesIO(data)
 
 
 class Server:

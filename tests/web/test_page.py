@@ -207,3 +207,60 @@ def test_exported_demo_model_served_by_http_server(tmp_path, browser):
     finally:
         server.terminate()
         server.wait(timeout=10)
+
+
+def long_video() -> Model:
+    """Four segments of 10 frames (the demo scene with different seeds), lite, at 10 fps."""
+    from stg_runtime.demo import demo_model
+    segments = []
+    for k in range(4):
+        s = demo_model("lite", fps=10.0, num_frames=10, seed=k).segments[0]
+        segments.append(Segment(10 * k, 10, **s.arrays()))
+    return Model("lite", 10.0, segments, cameras=demo_model("lite", fps=10.0, num_frames=10).cameras[:1])
+
+
+@pytest.fixture(scope="module")
+def ranged_site(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("ranged")
+    export_web(VECTORS / "lite.stg", folder)
+    model = long_video()
+    stg_format.save(model, folder / "long.stg")
+    stg_format.save(model, folder / "raw.stg", codec="raw")
+    data = bytearray((folder / "raw.stg").read_bytes())
+    data[-40] ^= 0xFF  # the low byte of a float of the last segment (stored raw): only the checksum can tell
+    (folder / "long_damaged.stg").write_bytes(bytes(data))
+    server = page.Server(folder, page.RangeHandler)
+    yield folder, server.url
+    server.close()
+
+
+def test_long_video_streams_segments(ranged_site, browser):
+    """Segments arrive by range requests: the first frame shows before the whole file has arrived, every
+    segment matches the Player, and once every byte is in the checksum is verified."""
+    folder, url = ranged_site
+    player = Player(folder / "long.stg", device="cpu")
+    camera = player.cameras[0]
+    page.RangeHandler.sent.clear()
+    open_model(browser, url, "long.stg")
+    image = page.snapshot(browser, camera.to_dict(), 0.0)
+    assert page.psnr(image[..., :3], player.render(camera, 0.0)) >= MIN_PSNR
+    sent = sum(n for path, n in page.RangeHandler.sent if path == "/long.stg")
+    size = (folder / "long.stg").stat().st_size
+    assert sent < 0.75 * size, (sent, size)  # segment 0 and the one ahead, not the rest
+    for t in (1.5, 2.5, 3.95, 0.5):
+        image = page.snapshot(browser, camera.to_dict(), t)
+        assert page.psnr(image[..., :3], player.render(camera, t)) >= MIN_PSNR, t
+    sent = sum(n for path, n in page.RangeHandler.sent if path == "/long.stg")
+    assert sent == size, page.RangeHandler.sent  # every byte once
+    assert browser.execute_script("return [window.stg.player.file.checked, window.stg.error]") == [True, None]
+
+
+def test_long_video_with_a_damaged_segment_ends_in_a_message(ranged_site, browser):
+    folder, url = ranged_site
+    open_model(browser, url, "long_damaged.stg")
+    page.snapshot(browser, None, 0.0)  # the first segment plays
+    with pytest.raises(AssertionError, match="checksum mismatch"):
+        for t in (1.5, 2.5, 3.5):
+            page.snapshot(browser, None, t)
+    error, loaded, shown = wait_message(browser, 5.0)
+    assert error and "long_damaged.stg: checksum mismatch" in error and shown == error

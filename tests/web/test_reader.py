@@ -124,3 +124,15 @@ def test_fuzzed_files_refused_by_python_are_refused(tmp_path):
     # the one known difference: JSON's NaN / Infinity literals, which Python's json reads and JSON.parse refuses
     differ = [n for n in accepted if not results[n]["ok"] and "JSON" not in results[n]["error"]]
     assert not differ, [results[n] for n in differ]
+
+
+def test_player_modules_load_and_are_all_exported():
+    """Every module but the page's app.js imports in node (no syntax error, no missing import), and
+    stg-convert export-web copies every file of the player."""
+    from stg_runtime.web.export import PLAYER_FILES
+    web = ROOT / "stg_runtime" / "web"
+    assert sorted(PLAYER_FILES) == sorted(p.name for p in web.iterdir() if p.suffix in (".js", ".html"))
+    modules = [name for name in PLAYER_FILES if name.endswith(".js") and name not in ("app.js", "sort-worker.js")]
+    script = "".join(f"await import({json.dumps((web / name).as_uri())});" for name in modules)
+    out = subprocess.run([NODE, "--input-type=module", "-e", script], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
