@@ -97,7 +97,12 @@ if (player) {
   $("time").oninput = (e) => player.setTime(Number(e.target.value));
   $("speed").onchange = (e) => { player.speed = Number(e.target.value); };
   $("loop").onchange = (e) => { player.loop = e.target.checked; };
-  $("presets").onchange = (e) => { player.setCamera(player.cameras[Number(e.target.value)]); controls?.reset(orbitDistance()); };
+  const preset = () => {
+    const cam = player.cameras[Number($("presets").value)];
+    if (cam) { player.setCamera(cam); controls?.reset(orbitDistance()); }
+  };
+  $("presets").onchange = preset;
+  $("reset").onclick = preset;
   $("open").onchange = (e) => e.target.files[0] && load(e.target.files[0]).catch(() => {});
   document.addEventListener("keydown", (e) => {
     if (e.key === " " && e.target.tagName !== "INPUT") { e.preventDefault(); $("play").click(); }

@@ -264,3 +264,38 @@ def test_long_video_with_a_damaged_segment_ends_in_a_message(ranged_site, browse
             page.snapshot(browser, None, t)
     error, loaded, shown = wait_message(browser, 5.0)
     assert error and "long_damaged.stg: checksum mismatch" in error and shown == error
+
+
+def test_page_controls(site, browser):
+    """The page's controls: play advances the time, a preset sets a training camera, a drag orbits, the
+    W key flies forward, the FPS readout counts."""
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import Select
+    folder, url = site
+    open_model(browser, url, "full.stg")
+    state = "const p = window.stg.player; return [p.time, p.camera.world_to_camera, p.playing];"
+    t0, pose0, _ = browser.execute_script(state)
+    browser.find_element(By.ID, "play").click()
+    time.sleep(0.6)
+    browser.find_element(By.ID, "play").click()
+    t1, _, playing = browser.execute_script(state)
+    assert t1 > t0 and not playing
+    canvas = browser.find_element(By.ID, "view")
+    ActionChains(browser).move_to_element(canvas).click_and_hold().move_by_offset(40, 10).release().perform()
+    _, pose1, _ = browser.execute_script(state)
+    assert not np.allclose(pose0, pose1)
+    rotation = np.array(pose1).reshape(4, 4)[:3, :3]
+    np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-9)  # still a rotation
+    centre = lambda pose: -np.array(pose).reshape(4, 4)[:3, :3].T @ np.array(pose).reshape(4, 4)[:3, 3]  # noqa: E731
+    ActionChains(browser).key_down("w", canvas).pause(0.4).key_up("w", canvas).perform()
+    _, pose2, _ = browser.execute_script(state)
+    forward = np.array(pose1).reshape(4, 4)[2, :3]
+    assert np.dot(centre(pose2) - centre(pose1), forward) > 0  # moved forward
+    select = Select(browser.find_element(By.ID, "presets"))
+    assert len(select.options) == len(Player(VECTORS / "full.stg", device="cpu").cameras)
+    select.select_by_index(len(select.options) - 1)
+    browser.find_element(By.ID, "reset").click()
+    assert browser.execute_script("return window.stg.player.camera") == \
+        browser.execute_script("return window.stg.player.cameras.at(-1)")
+    assert re.fullmatch(r"\d+\.\d fps", browser.find_element(By.ID, "fps").text)
