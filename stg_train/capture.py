@@ -126,3 +126,44 @@ class CameraEffects:
         return {"gain": self.gain, "white_balance": self.white_balance.tolist(), "vignetting": self.vignetting,
                 "noise": self.noise, "rotation_rad": self.rotation.tolist(), "translation": self.translation.tolist()}
 
+
+
+def capture_record(data_dir) -> dict | None:
+    """The "capture" record of `data_dir`/scene.json (the truth a realistic synthetic capture keeps:
+    write_n3v(capture=...)), or None when there is none."""
+    import json
+    from pathlib import Path
+
+    path = Path(data_dir) / "scene.json"
+    try:
+        return json.loads(path.read_text()).get("capture")
+    except (OSError, ValueError, AttributeError):
+        return None
+
+
+def pose_error(camera: Camera, true_world_to_camera) -> tuple[float, float]:
+    """(rotation error in degrees, camera-centre distance in world units) of `camera` against the true
+    world_to_camera (4, 4)."""
+    w2c = np.asarray(camera.world_to_camera, np.float64)
+    truth = np.asarray(true_world_to_camera, np.float64)
+    relative = w2c[:3, :3] @ truth[:3, :3].T
+    angle = np.degrees(np.arccos(np.clip((np.trace(relative) - 1.0) / 2.0, -1.0, 1.0)))
+    centre = -w2c[:3, :3].T @ w2c[:3, 3]
+    true_centre = -truth[:3, :3].T @ truth[:3, 3]
+    return float(angle), float(np.linalg.norm(centre - true_centre))
+
+
+def pose_errors(cameras, record: dict, names=None) -> dict:
+    """Pose errors of `cameras` against a capture record's truth (capture_record), matched by name, over
+    the cameras named in `names` (default: all that the record has): "rotation_deg" and "translation"
+    (means over those cameras), "max_rotation_deg", "max_translation", "cameras" (name -> (degrees,
+    distance))."""
+    truth = {c["name"]: c["true_world_to_camera"] for c in record["cameras"]}
+    chosen = [c for c in cameras if c.name in truth and (names is None or c.name in names)]
+    if not chosen:
+        raise ValueError("pose_errors: no camera of the capture record to compare")
+    each = {c.name: pose_error(c, truth[c.name]) for c in chosen}
+    rot = [v[0] for v in each.values()]
+    dist = [v[1] for v in each.values()]
+    return {"rotation_deg": float(np.mean(rot)), "translation": float(np.mean(dist)),
+            "max_rotation_deg": float(np.max(rot)), "max_translation": float(np.max(dist)), "cameras": each}

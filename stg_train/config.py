@@ -42,7 +42,12 @@ class TrainConfig:
     training cameras, stg_train.data.flow); guided_settings: GuidedSettings field overrides;
     learning_rates: params.LearningRates field overrides (before lr_scale and the stretch);
     separate_rotation: the reference's step that keeps the rotation velocity only for moving Gaussians
-    (stg_train.strategy.rotation, at Schedule.separate_at). docs/training.md says which defaults are
+    (stg_train.strategy.rotation, at Schedule.separate_at); appearance: a learned colour transform per
+    training camera (and, with appearance_vignetting, a radial falloff) applied to its renders before
+    the loss only (stg_train.appearance); pose_refine: a learned rigid correction of each training
+    camera's pose (stg_train.pose_refine); camera_learning_rates: overrides of their rates (keys
+    "matrix", "bias", "vignetting" of appearance.APPEARANCE_LR, "rotation", "translation" of
+    pose_refine.POSE_LR). docs/training.md says which defaults are
     the reference's and which are ours, with the measurements behind them.
     """
 
@@ -68,6 +73,10 @@ class TrainConfig:
     guided_settings: dict = field(default_factory=dict)
     learning_rates: dict = field(default_factory=dict)
     separate_rotation: bool = False
+    appearance: bool = False
+    appearance_vignetting: bool = True
+    pose_refine: bool = False
+    camera_learning_rates: dict = field(default_factory=dict)
 
     def for_dataset(self, dataset) -> "TrainConfig":
         """These settings with the choices left open made: init "auto" (or None) -> default_method(dataset),

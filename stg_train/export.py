@@ -139,7 +139,8 @@ def export(params: STGParams, path, cameras: list[Camera], fps: float, num_frame
 
 
 def export_trainer(trainer, path, check: bool = True) -> ExportReport:
-    """Export a stg_train.trainer.Trainer's current parameters with its dataset's cameras, fps, frame
+    """Export a stg_train.trainer.Trainer's current parameters with its dataset's cameras (the training
+    cameras' poses refined when the run refines them: Trainer.refined_cameras), fps, frame
     range (start_frame and frame count: a Dataset.frame_range view gives one segment of a longer video)
     and bounds, checked on the dataset's held-out cameras (when `check`)."""
     from dataclasses import asdict
@@ -148,7 +149,7 @@ def export_trainer(trainer, path, check: bool = True) -> ExportReport:
     prov = provenance(asdict(trainer.config), iterations=trainer.step, train_seconds=round(trainer.seconds, 3),
                       data=None if ds.path is None else str(ds.path))
     check_cameras = [ds.cameras[i] for i in ds.test_cameras] if check else None
-    return export(trainer.params, path, ds.cameras, ds.fps, ds.num_frames, check_cameras=check_cameras,
+    return export(trainer.params, path, trainer.refined_cameras(), ds.fps, ds.num_frames, check_cameras=check_cameras,
                   bounds=ds.scene_bounds, provenance=prov, start_frame=getattr(ds, "start_frame", 0))
 
 
@@ -158,5 +159,5 @@ def trainer_model(trainer) -> Model:
     tensors are copied, never changed."""
     ds = trainer.dataset
     with torch.no_grad():
-        return to_model(trainer.params, ds.cameras, ds.fps, ds.num_frames, bounds=ds.scene_bounds,
+        return to_model(trainer.params, trainer.refined_cameras(), ds.fps, ds.num_frames, bounds=ds.scene_bounds,
                         start_frame=getattr(ds, "start_frame", 0))

@@ -185,7 +185,7 @@ def claim_output(out, dataset=None, segment_frames: int | None = None, segments:
         raise RunExists(f"{folder} holds {what}: continue it with --resume, write to a new --out, or add --force "
                         "to train again from scratch (replacing it)")
     for folder, _ in used:
-        for name in (*RUN_FILES, "orbit.mp4"):
+        for name in (*RUN_FILES, "orbit.mp4", REFINED_CAMERAS):
             (folder / name).unlink(missing_ok=True)
 
 
@@ -295,8 +295,39 @@ def train(dataset, out, config: TrainConfig, resume: bool = False, quiet: bool =
                "settings": asdict(trainer.config)}
     if trainer.initial is not None:
         metrics["init"] = trainer.initial.summary()
+    metrics.update(_refined_cameras(trainer, out, quiet))
     _write_metrics(out, metrics)
     return metrics
+
+
+#: Where a run with pose refinement writes its refined cameras (stg_runtime.camera's camera-path JSON).
+REFINED_CAMERAS = "refined_cameras.json"
+
+
+def _refined_cameras(trainer: Trainer, out: Path, quiet: bool) -> dict:
+    """With pose refinement: write OUT/refined_cameras.json and, when the dataset's scene.json records the
+    capture's true poses (stg_train.capture), say how far the training cameras were and are from them;
+    returns {"pose_error": {"stated": ..., "refined": ...}} for metrics.json (or {})."""
+    if trainer.poses is None:
+        return {}
+    from stg_runtime.camera import save_camera_path
+
+    from .capture import capture_record, pose_errors
+
+    cameras = trainer.refined_cameras()
+    save_camera_path(out / REFINED_CAMERAS, cameras)
+    ds = trainer.dataset
+    record = None if ds.path is None else capture_record(ds.path)
+    if record is None:
+        return {}
+    names = [ds.cameras[i].name for i in ds.train_cameras]
+    stated, refined = pose_errors(ds.cameras, record, names), pose_errors(cameras, record, names)
+    if not quiet:
+        print(f"stg-train: pose error of the training cameras against {ds.path}/scene.json's truth: rotation "
+              f"{stated['rotation_deg']:.3f} -> {refined['rotation_deg']:.3f} degrees, position {stated['translation']:.4g} "
+              f"-> {refined['translation']:.4g} (means; stated -> refined)", file=sys.stderr)
+    keep = ("rotation_deg", "translation", "max_rotation_deg", "max_translation")
+    return {"pose_error": {"stated": {k: stated[k] for k in keep}, "refined": {k: refined[k] for k in keep}}}
 
 
 def train_segments(dataset, out, config: TrainConfig, segment_frames: int, indices: Sequence[int] | None = None,
@@ -416,12 +447,20 @@ def model_frames(player: Player, dataset, name) -> range:
     return range(first, min(end, dataset.num_frames))
 
 
+#: How far check_cameras lets a refined training camera be from the dataset's (of the rig's size in
+#: position, radians in rotation).
+REFINED_TOLERANCE = 0.05
+
+
 def check_cameras(player: Player, dataset, name, tolerance: float = 1e-3) -> None:
     """DataError naming the model and the first camera that differs when the model's stored cameras are
     not the dataset's (same names; poses within `tolerance` of the rig's size in position and
     `tolerance` radians; the same focal length relative to the image width, so another --downscale
-    still matches). A model that stores no cameras passes."""
+    still matches). A model that stores no cameras passes. A model trained with pose refinement (its
+    provenance says so) stores refined training cameras: those may differ by up to REFINED_TOLERANCE."""
     stored = {c.name: c for c in player.cameras}
+    settings = (getattr(player.model, "provenance", None) or {}).get("settings") or {}
+    refined = set(dataset.train_cameras) if settings.get("pose_refine") else set()
     if not stored:
         return
     cams = dataset.cameras
@@ -437,7 +476,8 @@ def check_cameras(player: Player, dataset, name, tolerance: float = 1e-3) -> Non
         moved = float(np.linalg.norm(cam.center - other.center)) / scale
         turned = float(np.abs(cam.R - other.R).max())
         focal = abs(cam.fx / cam.width - other.fx / other.width) / (cam.fx / cam.width)
-        if moved > tolerance or turned > tolerance or focal > tolerance or cam.model != other.model:
+        limit = max(tolerance, REFINED_TOLERANCE) if i in refined else tolerance
+        if moved > limit or turned > limit or focal > tolerance or cam.model != other.model:
             raise DataError(f"{name}: was not trained on this dataset: its camera {cam.name!r} differs from the "
                             f"dataset's (position off by {moved:.3g} of the rig's size, rotation by {turned:.3g}, "
                             f"focal length by {100 * focal:.3g}%); {hint}")

@@ -25,12 +25,14 @@ from stg_runtime.atomic import atomic_output, remove_leftovers
 from stg_runtime.camera import Camera
 from stg_runtime.progress import Progress
 
+from .appearance import CameraAppearance
 from .data.flow import initial_velocity
 from .config import MOTION_INITS, TrainConfig  # noqa: F401 (TrainConfig's home is config; re-exported)
 from .data.points import initial_points
 from .losses import loss_fn
 from .metrics import psnr_of_mse
 from .params import LearningRates, STGParams, extent_of, position_lr, view_inputs
+from .pose_refine import PoseCorrections
 from .render import rasterize
 from .strategy import (DensityControl, GuidedSampling, GuidedSettings, Schedule, SeparateRotation, StepContext,
                        Strategy, Thresholds)
@@ -100,10 +102,12 @@ class Trainer:
             self.strategies.append(GuidedSampling(self.schedule, GuidedSettings(**config.guided_settings)))
         if config.separate_rotation:
             self.strategies.append(SeparateRotation(self.schedule))
+        self._init_camera_models()
         self.history: list[dict] = []  # per-step figures: step, loss, psnr, gaussians, seconds
         self.seconds = 0.0  # training time so far (excluding checkpoints and callbacks)
         if _state is not None:
             self.optimizer.load_state_dict(_state["optimizer"])
+            self._load_camera_models(_state)
             for s, st in zip(self.strategies, _state["strategies"]):
                 s.load_state_dict(st)
             self.history, self.seconds = list(_state["history"]), float(_state["seconds"])
@@ -112,6 +116,53 @@ class Trainer:
             if _state["rng"].get("cuda") is not None and torch.cuda.is_available():
                 torch.cuda.set_rng_state_all(_state["rng"]["cuda"])
             random.setstate(_state["rng"]["python"])
+
+    # -- per-camera appearance and pose refinement (stg_train.appearance, stg_train.pose_refine) ---------
+    def _init_camera_models(self) -> None:
+        """self.appearance / self.poses (None when off) and their own Adam, self.camera_optimizer."""
+        cfg, ds = self.config, self.dataset
+        self.appearance = self.poses = self.camera_optimizer = None
+        groups = []
+        if cfg.appearance:
+            self.appearance = CameraAppearance(len(ds.cameras), ds.train_cameras, self.device, cfg.appearance_vignetting)
+            groups += self.appearance.param_groups(cfg.camera_learning_rates)
+        if cfg.pose_refine:
+            self.poses = PoseCorrections(ds.train_cameras, self.device, scale=self.extent)
+            groups += self.poses.param_groups(cfg.camera_learning_rates)
+        if groups:
+            for group in groups:
+                group["initial_lr"] = group["lr"]
+            self.camera_optimizer = torch.optim.Adam(groups, eps=1e-15)
+
+    def _load_camera_models(self, state: dict) -> None:
+        """Their state from a checkpoint (left as new where the checkpoint has none: turned on at resume)."""
+        if self.appearance is not None and state.get("appearance") is not None:
+            self.appearance.load_state_dict(state["appearance"])
+        if self.poses is not None and state.get("poses") is not None:
+            self.poses.load_state_dict(state["poses"])
+        saved = state.get("camera_optimizer")
+        if self.camera_optimizer is not None and saved is not None and \
+                len(saved["param_groups"]) == len(self.camera_optimizer.param_groups):
+            self.camera_optimizer.load_state_dict(saved)
+
+    def refined_cameras(self) -> list[Camera]:
+        """The dataset's cameras, the training cameras' poses refined when pose_refine is on."""
+        cams = list(self.dataset.cameras)
+        return cams if self.poses is None else self.poses.refined(cams)
+
+    def _camera_step(self) -> None:
+        """Step the per-camera models (rates decayed to a tenth over the run), keep the appearance's mean
+        the identity and the pose corrections' mean zero."""
+        if self.camera_optimizer is None:
+            return
+        for group in self.camera_optimizer.param_groups:
+            group["lr"] = group["initial_lr"] * 0.1 ** min(self.step / self.config.iterations, 1.0)
+        self.camera_optimizer.step()
+        self.camera_optimizer.zero_grad(set_to_none=True)
+        if self.appearance is not None:
+            self.appearance.center()
+        if self.poses is not None:
+            self.poses.center()
 
     # -- rendering ------------------------------------------------------------------------------------
     def rays(self, camera_index: int) -> Tensor:
@@ -148,7 +199,11 @@ class Trainer:
         gaussians = self.params.at(tau)
         images, renders = [], []
         for ci in views:
-            rgb, out = self.render(ds.cameras[ci], tau, gaussians, self.rays(ci))
+            g, rays = (gaussians, self.rays(ci)) if self.poses is None else \
+                self.poses.apply(gaussians, self.rays(ci), ci, ds.cameras[ci])
+            rgb, out = self.render(ds.cameras[ci], tau, g, rays)
+            if self.appearance is not None:
+                rgb = self.appearance.apply(rgb, ci, ds.cameras[ci])
             images.append(rgb)
             renders.append((ds.cameras[ci], out))
         img = torch.stack(images)
@@ -165,6 +220,7 @@ class Trainer:
             strategy.step_post_backward(self.params, self.optimizer, self.step, context)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
+        self._camera_step()
         return {"loss": loss.item(), "psnr": psnr_of_mse(max(mse, 1e-12))}
 
     def train(self, progress: bool = True, callback: Callable[["Trainer"], None] | None = None) -> None:
@@ -216,6 +272,9 @@ class Trainer:
                 "history": self.history, "seconds": self.seconds,
                 "bounds": None if self.dataset.bounds is None else self.dataset.bounds.tolist(),
                 "bounds_source": self.dataset.bounds_source,
+                "appearance": None if self.appearance is None else self.appearance.state_dict(),
+                "poses": None if self.poses is None else self.poses.state_dict(),
+                "camera_optimizer": None if self.camera_optimizer is None else self.camera_optimizer.state_dict(),
                 "rng": {"numpy": self.rng.bit_generator.state, "torch": torch.get_rng_state(),
                         "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
                         "python": random.getstate()}}

@@ -63,7 +63,56 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-png", action="store_true",
                    help="do not write the lossless PNG frames (only the mp4 videos)")
     p.add_argument("--quiet", action="store_true", help="no progress line")
+    _add_capture_options(p)
     return p
+
+
+#: --realistic's knobs: option -> (CaptureModel field, metavar, help)
+CAPTURE_KNOBS = {
+    "--gain": ("gain", "STOPS", "standard deviation of each camera's exposure, in stops"),
+    "--white-balance": ("white_balance", "SD", "standard deviation of each camera's per-channel gains around 1"),
+    "--vignetting": ("vignetting", "F", "brightness lost at the image corners (0.3: 30%% darker)"),
+    "--noise": ("noise", "SD", "standard deviation of the sensor noise per pixel and channel, in [0, 1] units"),
+    "--pose-rotation": ("rotation_deg", "DEG", "size of each camera's pose error: a rotation about a random axis"),
+    "--pose-translation": ("translation", "UNITS", "size of each camera's pose error: a shift in a random "
+                                                   "direction, world units"),
+}
+
+
+def _nonnegative_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not value >= 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a finite number of at least 0, got {text}")
+    return value
+
+
+def _add_capture_options(p: argparse.ArgumentParser) -> None:
+    from ..capture import CaptureModel  # numpy only
+
+    defaults = CaptureModel()
+    group = p.add_argument_group(
+        "realistic capture (N3V layout)",
+        "--realistic records the frames as a real rig would (stg_train.capture.CaptureModel): per-camera "
+        "exposure and white balance, lens vignetting, sensor noise, and poses_bounds.npy states slightly wrong "
+        "poses; scene.json keeps the truth (each camera's effects and true pose) under \"capture\". Each knob "
+        "implies --realistic; 0 turns its effect off. The per-camera values are drawn from --seed.")
+    group.add_argument("--realistic", action="store_true", help="a realistic capture with the knobs' defaults")
+    for option, (name, metavar, text) in CAPTURE_KNOBS.items():
+        group.add_argument(option, type=_nonnegative_float, default=None, metavar=metavar,
+                           help=f"{text} ({getattr(defaults, name):g} when not given)")
+
+
+def _capture(args):
+    """The CaptureModel the arguments ask for, or None."""
+    knobs = {name: getattr(args, option[2:].replace("-", "_")) for option, (name, _, _) in CAPTURE_KNOBS.items()}
+    if not args.realistic and all(v is None for v in knobs.values()):
+        return None
+    from ..capture import CaptureModel
+
+    return CaptureModel(seed=args.seed, **{k: v for k, v in knobs.items() if v is not None})
 
 
 def main(argv=None) -> int:
@@ -72,6 +121,9 @@ def main(argv=None) -> int:
     hfov = args.fisheye if args.fisheye is not None else args.pinhole_dome
     if hfov is not None and args.focal is not None:
         parser.error("--focal applies to the N3V rig; the dome's focal length follows from HFOV")
+    capture = _capture(args)
+    if hfov is not None and capture is not None:
+        parser.error("--realistic and its knobs apply to the N3V rig, not to the dome (--fisheye, --pinhole-dome)")
     if os.path.exists(args.out_dir) and not os.path.isdir(args.out_dir):
         return error("stg-synth", f"{args.out_dir}: is a file, not a folder")
     parent = next(p for p in Path(args.out_dir).absolute().parents if p.exists())
@@ -90,7 +142,7 @@ def main(argv=None) -> int:
         with Progress(total=args.cameras * args.frames, desc="stg-synth frames", enabled=not args.quiet) as bar:
             report = lambda done, total: bar.update(done - bar.count)  # noqa: E731
             if hfov is None:
-                write_n3v(args.out_dir, scene, focal=args.focal, progress=report, **common)
+                write_n3v(args.out_dir, scene, focal=args.focal, progress=report, capture=capture, **common)
             else:
                 write_immersive(args.out_dir, scene, hfov_deg=hfov, progress=report,
                                 model="fisheye" if args.fisheye is not None else "pinhole", **common)

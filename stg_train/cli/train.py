@@ -50,7 +50,7 @@ def _segment_list(text: str) -> list[int]:
 CONFIG_OPTIONS = {"model": "--model", "iterations": "--iterations", "batch": "--batch", "num_points": "--points",
                   "init": "--init", "init_every": "--init-every", "motion_init": "--motion-init", "seed": "--seed",
                   "checkpoint_every": "--checkpoint-every", "guided": "--no-guided", "device": "--device",
-                  "splatter": "--splatter"}
+                  "splatter": "--splatter", "appearance": "--appearance", "pose_refine": "--pose-refine"}
 #: argparse dest -> TrainConfig field, where they differ.
 _DEST_FIELDS = {"points": "num_points", "no_guided": "guided"}
 
@@ -138,6 +138,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-guided", action="store_true",
                    help="no guided sampling (new Gaussians along the rays of high-error patches, the paper's "
                         "Sec. 4.4; on by default)")
+    p.add_argument("--appearance", action=argparse.BooleanOptionalAction, default=d.appearance,
+                   help="learn each training camera's colour transform (3x3 + bias, their mean held at the "
+                        "identity) and lens vignetting, applied to its renders before the loss only: for "
+                        "captures whose cameras disagree in exposure and colour; the .stg holds the canonical "
+                        "scene (off by default; docs/training.md)")
+    p.add_argument("--pose-refine", action=argparse.BooleanOptionalAction, default=d.pose_refine,
+                   help="refine each training camera's pose (a small rotation and translation) with the scene; "
+                        "writes OUT/refined_cameras.json, and the .stg stores the refined cameras (off by "
+                        "default; docs/training.md)")
     p.add_argument("--viewer", nargs="?", type=port, const=8080, default=None, metavar="PORT",
                    help="show the model in the browser while it trains, at http://127.0.0.1:PORT (default "
                         "8080; needs the viewer extra): the current parameters every few seconds, and the "
@@ -157,6 +166,7 @@ def _config(args, splatter: str) -> TrainConfig:
     base.checkpoint_every, base.splatter = args.checkpoint_every, splatter
     base.guided, base.init_every, base.init = not args.no_guided, args.init_every, args.init
     base.motion_init = args.motion_init
+    base.appearance, base.pose_refine = args.appearance, args.pose_refine
     if args.iterations:
         base.iterations = args.iterations
     if args.points:
