@@ -505,23 +505,25 @@ _STAGES: list = []  # the dict of an open stage_seconds() block
 
 
 @contextmanager
-def stage_seconds():
-    """Within the block, rasterize adds each step's wall-clock seconds to the yielded dict (keys
-    "project", "sort", "bin", "composite"), as stg_runtime.cuda.splat.stage_seconds does on the GPU."""
+def stage_seconds(clock=time.perf_counter):
+    """Within the block, rasterize adds each step's seconds by `clock` (wall-clock by default;
+    time.process_time: the process's CPU time) to the yielded dict (keys "project", "sort", "bin",
+    "composite"), as stg_runtime.cuda.splat.stage_seconds does on the GPU."""
     times: dict = {}
-    _STAGES.append(times)
+    _STAGES.append((times, clock))
     try:
         yield times
     finally:
-        _STAGES.remove(times)
+        _STAGES.remove((times, clock))
 
 
 def _lap(name: str, since: float) -> float:
     """Inside stage_seconds(): add the seconds since `since` to step `name`; the time now."""
     if not _STAGES:
         return since
-    now = time.perf_counter()
-    _STAGES[-1][name] = _STAGES[-1].get(name, 0.0) + now - since
+    times, clock = _STAGES[-1]
+    now = clock()
+    times[name] = times.get(name, 0.0) + now - since
     return now
 
 
@@ -564,7 +566,7 @@ def rasterize(means, quats, scales, opacities, features, camera: Camera, *, tile
     tiles_all = np.empty((m, 4), np.int32)
     depth = np.empty(m, np.float64)
     threads = numba.get_num_threads()
-    lap = time.perf_counter()
+    lap = _STAGES[-1][1]() if _STAGES else 0.0
     with numba.parallel_chunksize(2048):  # dynamic scheduling: robust to a busy core
         _project(means, quats, scales, opacities, features, camera_params(camera), W, H, tile_size,
                  packed_all, tiles_all, depth)
