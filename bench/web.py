@@ -15,7 +15,7 @@ server that counts the bytes it sends. The page is opened fresh; figures:
 - draw ms: the median time of one complete frame (time evaluation, splatting, colour) with gl.finish,
   the sort excluded; and the worker's sort time;
 - CPU Player FPS: Player(device="cpu").render at a new time per frame (median of 10), this process;
-- bytes: everything the page fetched, against the .stg's size.
+- bytes: the model's bytes the page fetched, against the .stg's size, and the page's own files.
 Chromium and the Player take turns (never at the same time), on the same cores.
 """
 from __future__ import annotations
@@ -42,14 +42,14 @@ from tests.web import page  # noqa: E402
 
 
 class CountingHandler(http.server.SimpleHTTPRequestHandler):
-    sent = 0
+    sent: dict = {}  # path -> bytes sent
 
     def log_message(self, *args):
         pass
 
     def copyfile(self, source, outputfile):
         data = source.read()
-        type(self).sent += len(data)
+        type(self).sent[self.path] = type(self).sent.get(self.path, 0) + len(data)
         outputfile.write(data)
 
 
@@ -123,7 +123,7 @@ def main(argv=None) -> int:
     print(f"scene: {args.scene}, {args.gaussians} Gaussians, {width}x{height}; Chromium with SwiftShader (software "
           f"WebGL2), no GPU")
     print(f"{'kind':5} {'first frame ms':>14} {'page FPS':>9} {'draw ms':>8} {'sort ms':>8} {'CPU FPS':>8} "
-          f"{'page/CPU':>8} {'bytes':>10} {'.stg bytes':>10}")
+          f"{'page/CPU':>8} {'model bytes':>11} {'.stg size':>10} {'page bytes':>10}")
     work = Path(tempfile.mkdtemp(prefix="stg-web-bench-"))
     driver = page.start_browser(work / "chromium")
     try:
@@ -134,7 +134,7 @@ def main(argv=None) -> int:
             site.mkdir()
             stg_format.save(model, site / "bench.stg", codec="raw")
             export_web(site / "bench.stg", site)
-            CountingHandler.sent = 0
+            CountingHandler.sent = {}
             server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(CountingHandler, directory=str(site)))
             threading.Thread(target=server.serve_forever, daemon=True).start()
             try:
@@ -142,10 +142,12 @@ def main(argv=None) -> int:
             finally:
                 server.shutdown()
                 server.server_close()
+            sent = dict(CountingHandler.sent)
             cpu = cpu_fps(site / "bench.stg")
             size = (site / "bench.stg").stat().st_size
             print(f"{kind:5} {figures['first']:14.0f} {figures['fps']:9.2f} {figures['drawMs']:8.1f} "
-                  f"{figures['sortMs']:8.1f} {cpu:8.2f} {figures['fps'] / cpu:8.2f} {CountingHandler.sent:10d} {size:10d}")
+                  f"{figures['sortMs']:8.1f} {cpu:8.2f} {figures['fps'] / cpu:8.2f} {sent.get('/bench.stg', 0):11d} "
+                  f"{size:10d} {sum(sent.values()) - sent.get('/bench.stg', 0):10d}")
     finally:
         driver.quit()
     return 0

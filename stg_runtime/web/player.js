@@ -274,7 +274,7 @@ export class StgPlayer {
       this.drawn = drawn;
       this.renderer.draw(gpu, this.cam, tau, "canvas");
       if (this.stats.firstFrameMs === null) {  // ms since the page's navigation began, the frame finished
-        this.renderer.gl.finish();
+        this.renderer.gl.readPixels(0, 0, 1, 1, this.renderer.gl.RGBA, this.renderer.gl.UNSIGNED_BYTE, new Uint8Array(4));  // waits for it
         this.stats.firstFrameMs = performance.now();
       }
       this.frames++;
