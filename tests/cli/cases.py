@@ -161,6 +161,14 @@ RENDER = Command(
          ("!", "{folder}", "--out", "{out}.mp4"): "folder", ("!", "{text}", "--out", "{out}.mp4"): "text.txt",
          ("!", "--out", "{out}.mp4"): "MODEL", ("!", "{model}"): "--out"})
 
+#: bad_camera_paths' faults (tests/cli/conftest.py) -> what the error names: the camera and the field.
+CAMERA_PATH_FAULTS = {"no_fx": '"fx" is missing', "fx_text": '"fx" must be a positive number',
+                      "width_text": '"width" must be a whole number', "width_zero": '"width"',
+                      "w2c_12": '"world_to_camera" must be 16 numbers', "w2c_scaled": '"world_to_camera".*rotation',
+                      "w2c_text": '"world_to_camera"', "not_object": "expected a camera object", "fisheye_no_k": 'intrinsics: "k1" is missing'}
+RENDER.bad.update({("--path", f"{{path_{name}}}"): f"--path .*: camera 1: {text}"
+                   for name, text in CAMERA_PATH_FAULTS.items()})
+
 RENDER_KINDS = Command(  # every kind of --out alone, with an odd --size (rounded for yuv420p, with a note)
     "stg-render", ("{model}", "--quiet", "--size", "33x25", "--end", "0.04"),
     options={"folder": ("--out", "{out}"), "folder-slash": ("--out", "{out}.d/"), "mp4": ("--out", "{out}.mp4"),

@@ -46,6 +46,7 @@ def inputs(tmp_path_factory) -> dict:
     path_one   a camera path of 1 camera
     ply        a 3DGS PLY (the model's snapshot)
     empty      an empty file; text: a text file; folder: an empty folder; missing: a path that is not there
+    path_NAME  a camera path whose camera 1 has the fault NAME of bad_camera_paths
     """
     from stg_runtime import format as stg_format
     from stg_runtime.camera import Camera, save_camera_path
@@ -64,7 +65,8 @@ def inputs(tmp_path_factory) -> dict:
     (root / "empty").write_bytes(b"")
     (root / "text.txt").write_text("not a model\n")
     (root / "folder").mkdir()
-    return {"data": str(data), "other": str(_n3v(root / "other", 4)), "one_cam": str(_n3v(root / "one_cam", 1)),
+    bad_paths = {f"path_{name}": path for name, (path, _) in bad_camera_paths(root).items()}
+    return {**bad_paths, "data": str(data), "other": str(_n3v(root / "other", 4)), "one_cam": str(_n3v(root / "one_cam", 1)),
             "model": str(model), "path": str(root / "path.json"), "path_long": str(root / "path_long.json"),
             "path_one": str(root / "path_one.json"), "ply": str(root / "snapshot.ply"), "empty": str(root / "empty"),
             "text": str(root / "text.txt"), "folder": str(root / "folder"), "missing": str(root / "missing"),
