@@ -117,7 +117,7 @@ export class StgPlayer {
     this.model = null;
     this.error = null;
     this.sortedFor = null;
-    for (let i = 0; i < 4096; i++) this.worker.postMessage({ type: "forget", key: i });
+    this.worker.postMessage({ type: "forget-all" });
   }
 
   defaultCamera(model) {

@@ -3,7 +3,8 @@
 // whose opacity is below 1/255 or whose camera-space depth is at or before the near plane (0.01), and
 // sorts the rest by increasing depth, ties by index (a stable radix sort on the float32 depth's bits).
 //
-// Messages in:  {type: "segment", key, count, positionDegree, opacity, t_center, t_scale, position}
+// Messages in:  {type: "segment", key, count, positionDegree, opacity, t_center, t_scale, position},
+//               {type: "forget", key}, {type: "forget-all"}
 //               {type: "sort", id, key, tau, R: [9, row-major world-to-camera rotation], t: [3]}
 // Messages out: {id, key, order: Uint32Array (Gaussian indices, nearest first), sortMs}
 
@@ -60,6 +61,10 @@ self.onmessage = (event) => {
   }
   if (m.type === "forget") {
     segments.delete(m.key);
+    return;
+  }
+  if (m.type === "forget-all") {
+    segments.clear();
     return;
   }
   const s = segments.get(m.key);
