@@ -87,7 +87,7 @@ TRAIN = Command(
         "fps": ("--fps", "25"), "test-camera": ("--test-camera", "cam01"), "downscale": ("--downscale", "2"),
         "frames": ("--frames", "3"), "from-video": ("--from-video",), "near-far": ("--near", "1", "--far", "20"),
         "threads": ("--threads", "1"), "no-check": ("--no-check",), "no-guided": ("--no-guided",),
-        "viewer": ("--viewer", "{port}"),
+        "viewer": ("--viewer", "{port}"), "appearance": ("--appearance",), "pose-refine": ("--pose-refine",),
     },
     refused_pairs={frozenset(("resume", "force")): "--resume.*--force",
                    frozenset(("ray", "viewer")): "--viewer.*--ray"},
@@ -181,15 +181,25 @@ SYNTH = Command(
     "stg-synth", ("{out}", "--quiet", "--cameras", "2", "--frames", "2", "--size", "16x12"),
     options={"fps": ("--fps", "10"), "focal": ("--focal", "20"), "fisheye": ("--fisheye", "180"),
              "pinhole-dome": ("--pinhole-dome", "90"), "seed": ("--seed", "3"), "supersample": ("--supersample", "2"),
-             "no-png": ("--no-png",)},
+             "no-png": ("--no-png",), "realistic": ("--realistic",), "gain": ("--gain", "0.5"),
+             "white-balance": ("--white-balance", "0.1"), "vignetting": ("--vignetting", "0"),
+             "noise": ("--noise", "0.02"), "pose-rotation": ("--pose-rotation", "0.5"),
+             "pose-translation": ("--pose-translation", "0.02")},
     outputs=("{out}/scene.json",),
     refused_pairs={frozenset(("fisheye", "pinhole-dome")): "--fisheye|--pinhole-dome",
-                   frozenset(("focal", "fisheye")): "--focal", frozenset(("focal", "pinhole-dome")): "--focal"},
+                   frozenset(("focal", "fisheye")): "--focal", frozenset(("focal", "pinhole-dome")): "--focal",
+                   # the realistic capture is of the N3V rig, not of the domes
+                   **{frozenset((knob, dome)): "--realistic.*dome|--fisheye|--pinhole-dome"
+                      for knob in ("realistic", "gain", "white-balance", "vignetting", "noise", "pose-rotation",
+                                   "pose-translation") for dome in ("fisheye", "pinhole-dome")}},
     bad={**_bad_numbers("--cameras"), **_bad_numbers("--frames"), **_bad_numbers("--supersample"),
          ("--size", "4x4"): "--size", ("--size", "100000x100"): "--size", ("--size", "x"): "--size",
          ("--fps", "0"): "--fps", ("--fps", "nan"): "--fps", ("--focal", "-1"): "--focal",
          ("--fisheye", "0"): "--fisheye", ("--fisheye", "400"): "--fisheye", ("--pinhole-dome", "180"): "--pinhole-dome",
-         ("--seed", "x"): "--seed", ("!", "{text}"): "text.txt", ("!", "{text}/sub"): "text.txt", ("!",): "out_dir"})
+         ("--seed", "x"): "--seed", ("--gain", "-1"): "--gain", ("--noise", "x"): "--noise",
+         ("--vignetting", "inf"): "--vignetting", ("--pose-rotation", "-0.1"): "--pose-rotation",
+         ("--white-balance", "nan"): "--white-balance", ("--pose-translation", "x"): "--pose-translation",
+         ("!", "{text}"): "text.txt", ("!", "{text}/sub"): "text.txt", ("!",): "out_dir"})
 
 # -- stg-view (validate: serve() is a stand-in) -----------------------------------------------------
 VIEW = Command(
