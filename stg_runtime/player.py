@@ -189,7 +189,8 @@ class Player:
 
     def render_video(self, path, cameras: Camera | Sequence[Camera] | str | Path, times=None,
                      fps: float | None = None, progress: bool = True) -> int:
-        """Render a video (.mp4 etc., needs OpenCV) or a folder of PNG frames; returns the frame count.
+        """Render a video (.mp4, .mov, .mkv: H.264; .webm; .gif; through PyAV, stg_runtime.video) or a
+        folder of PNG frames; returns the frame count.
 
         cameras: one Camera (fixed view), one Camera per output frame, or the path of a camera-path JSON
         file (a list of camera objects as in formats/stg-v1.md). times: seconds of each output frame
