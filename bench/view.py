@@ -5,7 +5,7 @@
                          [--client socket,browser] [--clients 1]
 
 For each model kind and client it starts a `stg_runtime.viewer.Viewer` on the model
-(stg_runtime.demo.random_model, the scene of bench/render.py), connects the client with a view of
+(stg_runtime.demo.random_model, bench/render.py --scene random), connects the client with a view of
 --size, presses play, and counts the pictures that reach the client over --seconds, after --warmup
 seconds of playing (numba's JIT); with --clients N, N clients at once (their FPS added up). It also
 prints the Player's mean render time per frame on the server (with several clients, including the wait
