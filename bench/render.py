@@ -188,8 +188,11 @@ def trained_model(kind: str, cache: Path, path: str | None = None) -> Model:
         if not path.exists():
             print(f"training the demo's {kind} model once into {folder} (stg-train --demo: a few minutes)",
                   flush=True)
-            subprocess.run([sys.executable, "-m", "stg_train.cli.train", "--demo", "--model", kind,
-                            "--out", str(folder)], check=True, stdout=subprocess.DEVNULL)
+            done = subprocess.run([sys.executable, "-m", "stg_train.cli.train", "--demo", "--model", kind,
+                                   "--out", str(folder)], stdout=subprocess.DEVNULL)
+            if done.returncode:
+                raise SystemExit(f"bench/render.py: training the demo's {kind} model into {folder} failed "
+                                 f"(exit {done.returncode}); delete the folder and retry")
     return stg_format.load(path)
 
 
@@ -270,6 +273,8 @@ def main() -> None:
     args.radius_px = tuple(float(v) for v in args.radius.split(","))
     sizes = [tuple(int(v) for v in size.lower().split("x")) for size in args.size.split(",")]
     kinds = args.kinds.split(",")
+    if args.scene == "trained" and args.model:
+        kinds = [stg_format.load(args.model).kind]  # the file's own kind
     counts = [int(v) for v in args.gaussians.split(",")] if args.scene != "trained" else [0]
     if args.load_only:
         return load_main(args, sizes, counts, kinds[0])
