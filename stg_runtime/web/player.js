@@ -166,6 +166,7 @@ export class StgPlayer {
         if (model !== this.model) return null;  // another model was loaded meanwhile
         const s = model.segments[i];
         const gpu = this.renderer.upload(model, i);
+        gpu.firstSortId = this.nextId;  // orders sorted before this upload are not its own
         this.gpu.set(i, gpu);
         this.worker.postMessage({ type: "segment", key: i, count: s.count, positionDegree: s.positionDegree,
           opacity: s.decoded.opacity, t_center: s.decoded.t_center, t_scale: s.decoded.t_scale, position: s.decoded.position });
@@ -218,7 +219,7 @@ export class StgPlayer {
   sorted(result) {
     this.sortMs = result.sortMs;
     const gpu = this.gpu.get(result.key);
-    if (gpu && (!gpu.orderId || result.id > gpu.orderId)) {
+    if (gpu && result.id >= gpu.firstSortId && (!gpu.orderId || result.id > gpu.orderId)) {
       this.renderer.setOrder(gpu, result.order);
       gpu.orderId = result.id;
     }

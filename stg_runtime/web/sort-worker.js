@@ -68,8 +68,7 @@ self.onmessage = (event) => {
     return;
   }
   const s = segments.get(m.key);
-  if (!s) return;
   const start = performance.now();
-  const order = sort(s, m.tau, m.R, m.t);
+  const order = s ? sort(s, m.tau, m.R, m.t) : new Uint32Array(0);  // (a forgotten segment: nothing to draw)
   self.postMessage({ id: m.id, key: m.key, order, sortMs: performance.now() - start }, [order.buffer]);
 };
