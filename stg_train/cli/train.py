@@ -265,6 +265,8 @@ def _run(args, out: Path, given: dict[str, str], argv) -> int:
         claim_output(out, dataset, args.segment_frames, args.segments, resume=args.resume, force=args.force)
         if args.threads:
             set_cpu_threads(args.threads)
+            if args.resume and (out / "checkpoint.pt").exists() and not args.quiet:
+                print(f"{PROG}: --threads {args.threads} applies to the resumed run", file=sys.stderr)
         if args.viewer is not None:
             try:
                 from ..viewer import TrainingViewer

@@ -57,9 +57,10 @@ def test_resume_applies_what_may_change_and_refuses_the_rest(inputs, tmp_path, c
     out = tmp_path / "run"
     assert run([inputs["data"], "--out", out, "--iterations", "2", *FAST], capsys)[0] == 0
     fast = [a for a in FAST if a != "--quiet"]
-    rc, err = run([inputs["data"], "--out", out, "--resume", "--iterations", "4", "--checkpoint-every", "1", *fast],
-                  capsys)
+    rc, err = run([inputs["data"], "--out", out, "--resume", "--iterations", "4", "--checkpoint-every", "1",
+                   "--threads", "1", *fast], capsys)
     assert rc == 0, err
+    assert "--threads 1 applies to the resumed run" in err
     assert "at step 2 of 4" in err and "--iterations 4 replaces the checkpoint's 2" in err
     assert "--checkpoint-every 1 replaces the checkpoint's" in err
     assert json.loads((out / "metrics.json").read_text())["iterations"] == 4

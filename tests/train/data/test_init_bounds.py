@@ -190,7 +190,7 @@ def test_trainer_records_the_sfm_bounds_and_resume_restores_them(monkeypatch, tm
     (["--near", "5", "--far", "2"], "--far 2 must be larger than --near 5"),
     (["--near", "0", "--far", "2"], "must be positive"),
     (["--near", "-1", "--far", "2"], "must be positive"),
-    (["--near", "x", "--far", "2"], "invalid positive_float value"),
+    (["--near", "x", "--far", "2"], "argument --near: must be a number"),
 ])
 def test_cli_rejects_bad_near_far(tmp_path, capsys, argv, message):
     from stg_train.cli import train as train_cli
