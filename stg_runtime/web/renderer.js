@@ -146,11 +146,30 @@ export class Renderer {
     gl.bindVertexArray(null);
     gpu.recordTexture = this.floatTexture(gl.RGBA32F, RECORD_WIDTH, gpu.recordRows);
     gpu.quadVao = gl.createVertexArray();  // no attributes: the quads read the records texture
+    const indices = this.quadIndices(s.count);
+    gl.bindVertexArray(gpu.quadVao);
+    gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, indices);
+    gl.bindVertexArray(null);
     gpu.feedback = gl.createTransformFeedback();
     gl.bindTransformFeedback(gl.TRANSFORM_FEEDBACK, gpu.feedback);
     gl.bindBufferBase(gl.TRANSFORM_FEEDBACK_BUFFER, 0, gpu.records);
     gl.bindTransformFeedback(gl.TRANSFORM_FEEDBACK, null);
     return gpu;
+  }
+
+  /** An index buffer of two triangles per quad (corners 4q .. 4q + 3), for at least `count` quads (a
+   * smaller earlier one stays with the segments whose vertex arrays hold it). */
+  quadIndices(count) {
+    const gl = this.gl;
+    if (!this.indices || this.indices.count < count) {
+      const n = Math.max(count, 1024), data = new Uint32Array(6 * n);
+      for (let q = 0; q < n; q++) data.set([4 * q, 4 * q + 1, 4 * q + 2, 4 * q + 1, 4 * q + 2, 4 * q + 3], 6 * q);
+      this.indices = { count: n, buffer: gl.createBuffer() };
+      gl.bindVertexArray(null);
+      gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, this.indices.buffer);
+      gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, data, gl.STATIC_DRAW);
+    }
+    return this.indices.buffer;
   }
 
   release(gpu) {
@@ -253,7 +272,7 @@ export class Renderer {
       gl.bindTexture(gl.TEXTURE_2D, gpu.recordTexture);
       gl.uniform1i(gpu.quad.uniforms.u_records, 0);
       gl.bindVertexArray(gpu.quadVao);
-      gl.drawArrays(gl.TRIANGLES, 0, 6 * n);
+      gl.drawElements(gl.TRIANGLES, 6 * n, gl.UNSIGNED_INT, 0);
       gl.bindVertexArray(null);
       gl.disable(gl.BLEND);
     }

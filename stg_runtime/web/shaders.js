@@ -87,11 +87,12 @@ ${CAMERA_UNIFORMS}
 in uint a_index;
 out vec4 g_shape;   // 2D mean (pixels), half extents of the footprint (pixels)
 out vec4 g_conic;   // conic (power = a dx^2 + b dx dy + c dy^2), temporal opacity (0: culled)
+out vec4 g_quad;    // the quad drawn: its first axis (unit) and half lengths along both axes (pixels)
 out vec4 g_f0;      // features 0..2 (w unused)${full ? `
 out vec4 g_f1;
 out vec4 g_f2;` : ""}
 const int T = ${L.texels};
-void cull() { g_shape = vec4(0.0); g_conic = vec4(0.0); g_f0 = vec4(0.0);${full ? " g_f1 = vec4(0.0); g_f2 = vec4(0.0);" : ""} }
+void cull() { g_shape = vec4(0.0); g_conic = vec4(0.0); g_quad = vec4(0.0); g_f0 = vec4(0.0);${full ? " g_f1 = vec4(0.0); g_f2 = vec4(0.0);" : ""} }
 void main() {
   vec3 v_f0, v_f1, v_f2;
   int base = int(a_index) * T;
@@ -149,11 +150,17 @@ ${Array.from({ length: L.texels }, (_, k) => `  vec4 d${k} = texelFetch(u_data, 
   ${features}
   g_shape = vec4(mu, h);
   g_conic = vec4(vec3(0.5 * c, -b, 0.5 * a) / det, o);
+  // The quad: the footprint's box, or where smaller the rectangle along the ellipse's axes that holds
+  // power <= thr (both hold every pixel that can pass; the fragment shader tests the box).
+  float disc = sqrt(max(0.0, mid * mid - det));
+  vec2 e = sqrt(2.0 * thr * vec2(mid + disc, max(mid - disc, 0.0)));
+  vec2 axis = abs(b) > 1e-9 * mid ? normalize(vec2(b, mid + disc - a)) : (a >= c ? vec2(1.0, 0.0) : vec2(0.0, 1.0));
+  g_quad = e.x * e.y < h.x * h.y ? vec4(axis, e) : vec4(1.0, 0.0, h);
   g_f0 = vec4(v_f0, 0.0);${full ? `
   g_f1 = vec4(v_f1, 0.0);
   g_f2 = vec4(v_f2, 0.0);` : ""}
 }`;
-  const R = full ? 5 : 3;  // texels per record
+  const R = full ? 6 : 4;  // texels per record: shape, conic, quad, features
   const vertex = `#version 300 es
 precision highp float;
 precision highp int;
@@ -168,20 +175,20 @@ flat out vec3 v_f0;
 flat out vec3 v_f1;
 flat out vec3 v_f2;
 vec4 record(int j) { return texelFetch(u_records, ivec2(j % ${RECORD_WIDTH}, j / ${RECORD_WIDTH}), 0); }
-void main() {  // two triangles per Gaussian, not instanced (instancing is slow in software GL)
-  int i = gl_VertexID / 6, k = gl_VertexID % 6, base = i * ${R};
+void main() {  // a quad per Gaussian, not instanced (instancing is slow in software GL)
+  int i = gl_VertexID / 4, v = gl_VertexID % 4, base = i * ${R};  // 4 corners, indexed as 2 triangles
   vec4 shape = record(base), conic = record(base + 1);
   if (conic.w == 0.0) { gl_Position = vec4(0.0, 0.0, 2.0, 1.0); return; }
   v_mu = shape.xy;
   v_half = shape.zw;
   v_conic = conic.xyz;
   v_opacity = conic.w;
-  v_f0 = record(base + 2).xyz;${full ? `
-  v_f1 = record(base + 3).xyz;
-  v_f2 = record(base + 4).xyz;` : ""}
-  int v = k < 3 ? k : k - 2;
+  vec4 quad = record(base + 2);
+  v_f0 = record(base + 3).xyz;${full ? `
+  v_f1 = record(base + 4).xyz;
+  v_f2 = record(base + 5).xyz;` : ""}
   vec2 corner = vec2(float(v & 1), float(v >> 1)) * 2.0 - 1.0;
-  vec2 p = shape.xy + corner * (shape.zw + 1.0);
+  vec2 p = shape.xy + (corner.x * (quad.z + 0.01)) * quad.xy + (corner.y * (quad.w + 0.01)) * vec2(-quad.y, quad.x);
   gl_Position = vec4(p / u_size * 2.0 - 1.0, 0.0, 1.0);
 }`;
   const fragment = `#version 300 es
@@ -207,7 +214,7 @@ void main() {
   o1 = vec4(v_f1 * alpha, alpha);
   o2 = vec4(v_f2 * alpha, alpha);` : ""}
 }`;
-  const varyings = full ? ["g_shape", "g_conic", "g_f0", "g_f1", "g_f2"] : ["g_shape", "g_conic", "g_f0"];
+  const varyings = ["g_shape", "g_conic", "g_quad", "g_f0", ...(full ? ["g_f1", "g_f2"] : [])];
   return { project: { vertex: project, fragment: DISCARD_FRAGMENT, varyings }, quad: { vertex, fragment }, recordTexels: R };
 }
 
