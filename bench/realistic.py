@@ -1,0 +1,170 @@
+#!/usr/bin/env python
+"""Realistic captures (issue 33): the same synthetic scene captured cleanly and as a real rig would
+(per-camera exposure and white balance, vignetting, sensor noise, a small pose error:
+stg_train.capture.CaptureModel, what `stg-synth --realistic` writes), trained with and without the
+per-camera appearance (TrainConfig.appearance) and pose refinement (TrainConfig.pose_refine), and scored
+against the CLEAN lossless frames: raw and colour-aligned PSNR (stg_train.metrics, one affine colour map
+per camera) on the held-out camera, rendered at its TRUE pose (scene.json), and on two novel views
+inside the rig (ray traced); plus the training cameras' pose error against the truth, as stated and as
+refined.
+
+    python bench/realistic.py [--iterations N] [--points N] [--seeds 0,1] [--variants plain,appearance,...]
+                              [--captures clean,realistic] [--cameras C] [--frames F] [--width W]
+                              [--height H] [--set KEY=VALUE ...] [--capture KEY=VALUE ...] [--threads 2]
+                              [--data DIR] [--json PATH]
+
+Variants: plain (neither), appearance, pose (pose_refine), both, colour (appearance without its
+vignetting term). Each seed is one realistic capture
+(CaptureModel(seed=SEED), the knobs' defaults unless --capture changes them, e.g. --capture noise=0)
+and the training seed; the scene is the demo's (12 cameras x 30 frames at 160x120 by default). Training
+reads the lossless PNG frames of either capture. The defaults train with TrainConfig's defaults (3000
+steps, 20000 initial points): about as long per run as `stg-train` on the demo scene.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import stg_train  # noqa: F401  (first: it configures OpenMP before torch loads)
+import numpy as np
+import torch
+
+from stg_train.capture import CaptureModel, capture_record, pose_errors
+from stg_train.data import load_n3v
+from stg_train.data.dataset import Dataset
+from stg_train.metrics import evaluate_images
+from stg_train.pipeline import DEMO_SCENE
+from stg_train.synthetic import NOVEL_VIEWS, SyntheticScene, novel_view_dataset, write_n3v
+from stg_train.trainer import Trainer, TrainConfig
+
+VARIANTS = {"plain": {}, "appearance": {"appearance": True}, "pose": {"pose_refine": True},
+            "both": {"appearance": True, "pose_refine": True},
+            "colour": {"appearance": True, "appearance_vignetting": False}}
+
+
+def parse_setting(text: str) -> tuple[str, object]:
+    """KEY=VALUE, VALUE as JSON when it parses, else the string."""
+    key, sep, value = text.partition("=")
+    if not sep or not key:
+        raise argparse.ArgumentTypeError(f"expected KEY=VALUE, got {text!r}")
+    try:
+        return key, json.loads(value)
+    except json.JSONDecodeError:
+        return key, value
+
+
+def write_captures(root: Path, size: dict, capture: CaptureModel) -> tuple[Path, Path, SyntheticScene]:
+    """(clean folder, realistic folder, scene): the demo scene written cleanly and through `capture`
+    (each once: kept when there)."""
+    scene = SyntheticScene(seed=0, duration=size["frames"] / size["fps"])
+    common = dict(num_cameras=size["cameras"], num_frames=size["frames"], fps=size["fps"], width=size["width"],
+                  height=size["height"])
+    clean, real = root / "clean", root / f"realistic-{capture.seed}"
+    if not (clean / "scene.json").exists():
+        write_n3v(clean, scene, **common)
+    if not (real / "scene.json").exists():
+        write_n3v(real, scene, capture=capture, **common)
+    return clean, real, scene
+
+
+def heldout_truth(clean: Dataset, record: dict | None) -> Dataset:
+    """The held-out camera at its true pose (the capture record's, else the clean dataset's) with the
+    clean lossless frames."""
+    ci = clean.test_cameras[0]
+    cam = clean.cameras[ci]
+    if record is not None:
+        true = {c["name"]: c["true_world_to_camera"] for c in record["cameras"]}
+        cam = replace(cam, world_to_camera=np.asarray(true[cam.name]))
+    frames = np.stack([clean.frame(ci, j) for j in range(clean.num_frames)])[None]
+    return Dataset([cam], frames, clean.fps, test_cameras=[0])
+
+
+def score(trainer: Trainer, views: dict[str, Dataset]) -> dict:
+    """{view: (psnr, aligned_psnr)} of the trainer's canonical renders (no appearance) against `views`."""
+    out = {}
+    for name, ds in views.items():
+        r = evaluate_images(lambda ci, j: trainer.render_numpy(ds.cameras[ci], j / ds.num_frames), ds)
+        out[name] = (r["psnr"], r["aligned_psnr"])
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    d = TrainConfig()
+    ap.add_argument("--iterations", type=int, default=d.iterations)
+    ap.add_argument("--points", type=int, default=d.num_points)
+    ap.add_argument("--seeds", default="0", help="comma-separated capture and training seeds (default 0)")
+    ap.add_argument("--variants", default="plain,both", help="comma-separated subset of: " + ", ".join(VARIANTS))
+    ap.add_argument("--captures", default="clean,realistic", help="comma-separated subset of: clean, realistic")
+    ap.add_argument("--cameras", type=int, default=DEMO_SCENE["cameras"])
+    ap.add_argument("--frames", type=int, default=DEMO_SCENE["frames"])
+    ap.add_argument("--width", type=int, default=DEMO_SCENE["width"])
+    ap.add_argument("--height", type=int, default=DEMO_SCENE["height"])
+    ap.add_argument("--set", type=parse_setting, action="append", default=[], metavar="KEY=VALUE",
+                    help="a TrainConfig field for every run (VALUE is JSON, else a string)")
+    ap.add_argument("--capture", type=parse_setting, action="append", default=[], metavar="KEY=VALUE",
+                    help="a CaptureModel field (e.g. noise=0, rotation_deg=0.5)")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--data", default=None, help="folder for the captures (written once; default: a temp folder)")
+    ap.add_argument("--json", default=None, help="also write the results as JSON here")
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    os.environ.setdefault("NUMBA_NUM_THREADS", str(args.threads))
+    size = dict(cameras=args.cameras, frames=args.frames, width=args.width, height=args.height, fps=DEMO_SCENE["fps"])
+    root = Path(args.data or tempfile.mkdtemp(prefix="stg_realistic_"))
+    settings = dict(args.set)
+    results = []
+    for seed in [int(s) for s in args.seeds.split(",")]:
+        capture = CaptureModel(**{**dict(args.capture), "seed": seed})
+        clean_dir, real_dir, scene = write_captures(root, size, capture)
+        clean = load_n3v(clean_dir, prefer_png=True)
+        record = capture_record(real_dir)
+        novel = novel_view_dataset(scene, size["frames"], size["fps"], size["width"], size["height"],
+                                   positions=NOVEL_VIEWS[:2])
+        views = {"held-out": heldout_truth(clean, record),
+                 **{f"novel {k + 1}": Dataset([novel.cameras[k]], novel.frames[k:k + 1], novel.fps, test_cameras=[0])
+                    for k in range(2)}}
+        for capture_name in args.captures.split(","):
+            data = load_n3v(clean_dir if capture_name == "clean" else real_dir, prefer_png=True)
+            names = [data.cameras[i].name for i in data.train_cameras]
+            for variant in args.variants.split(","):
+                config = TrainConfig(iterations=args.iterations, num_points=args.points, seed=seed,
+                                     **{**settings, **VARIANTS[variant]})
+                start = time.perf_counter()
+                trainer = Trainer(data, config)
+                trainer.train(progress=False)
+                row = {"seed": seed, "capture": capture_name, "variant": variant, "seconds": time.perf_counter() - start,
+                       "gaussians": trainer.params.count, "views": score(trainer, views)}
+                if trainer.appearance is not None:
+                    summary = trainer.appearance.summary()
+                    row["vignetting"] = np.mean([a["vignetting"] for a in summary], axis=0).tolist()
+                    row["matrix_spread"] = float(np.std([np.diag(a["matrix"]) for a in summary]))
+                if trainer.poses is not None:
+                    state = trainer.poses.state_dict()
+                    row["correction"] = (float(np.degrees(state["rotation"].norm(dim=1).mean())),
+                                         float(state["translation"].norm(dim=1).mean() * state["scale"]))
+                if capture_name == "realistic":
+                    for key, cams in (("pose_stated", data.cameras), ("pose_refined", trainer.refined_cameras())):
+                        e = pose_errors(cams, record, names)
+                        row[key] = (e["rotation_deg"], e["translation"])
+                results.append(row)
+                figures = "  ".join(f"{v}: {p:.2f} / {a:.2f} dB" for v, (p, a) in row["views"].items())
+                pose = "" if "pose_refined" not in row else (
+                    f"  pose error {row['pose_stated'][0]:.3f} deg {row['pose_stated'][1]:.4f} -> "
+                    f"{row['pose_refined'][0]:.3f} deg {row['pose_refined'][1]:.4f}")
+                extra = "".join(f"  {k} {np.round(row[k], 4).tolist()}" for k in ("vignetting", "correction") if k in row)
+                print(f"seed {seed} {capture_name:9s} {variant:10s} {figures}{pose}{extra}  ({row['gaussians']} Gaussians, "
+                      f"{row['seconds']:.0f} s)", flush=True)
+    print("\nraw / colour-aligned PSNR against the clean lossless frames (held-out camera at its true pose)")
+    if args.json:
+        Path(args.json).write_text(json.dumps({"settings": {**vars(args), "set": settings}, "results": results},
+                                              indent=1, default=str) + "\n")
+
+
+if __name__ == "__main__":
+    main()
