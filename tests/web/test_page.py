@@ -1,7 +1,8 @@
 """The web player (stg_runtime/web) in real headless Chromium with software WebGL2 (SwiftShader): its
 snapshot() matches Player.render at >= 40 dB for every test vector (lite with two segments, full, full
 quantized, sh, full through a fisheye) at 3 cameras x 3 times; the depth order follows time (two
-Gaussians crossing in depth); every malicious fixture ends in a message in the page within 5 s; and a
+Gaussians crossing in depth); every malicious fixture, and fuzzed files the Python reader refuses, end
+in a message in the page within 5 s; long videos stream by range requests; the controls work; and a
 model exported with `stg-convert export-web`, served by `python -m http.server`, matches the Player.
 The lowest PSNR is printed (pytest -s) and recorded in docs/web.md."""
 from __future__ import annotations
@@ -299,3 +300,36 @@ def test_page_controls(site, browser):
     assert browser.execute_script("return window.stg.player.camera") == \
         browser.execute_script("return window.stg.player.cameras.at(-1)")
     assert re.fullmatch(r"\d+\.\d fps", browser.find_element(By.ID, "fps").text)
+
+
+def test_fuzzed_files_refused_by_python_end_in_a_message(tmp_path, browser):
+    """Mutated files (tools/fuzz.py's mutations, checksums recomputed) that the Python reader refuses
+    end in a message in the page within 5 s each."""
+    sys.path.insert(0, str(ROOT / "tools"))
+    try:
+        from fuzz import mutate_stg
+    finally:
+        sys.path.remove(str(ROOT / "tools"))
+    from stg_runtime import FormatError
+    export_web(VECTORS / "full.stg", tmp_path)
+    rng = np.random.default_rng(5)
+    bases = [p.read_bytes() for p in sorted(VECTORS.glob("*.stg"))]
+    refused = []
+    while len(refused) < 12:
+        _, data = mutate_stg(bases[len(refused) % len(bases)], rng)
+        path = tmp_path / f"fuzz{len(refused):02d}.stg"
+        path.write_bytes(data)
+        try:
+            stg_format.load(path)
+        except FormatError:
+            refused.append(path.name)
+    server = page.Server(tmp_path)
+    try:
+        for name in refused:
+            start = time.monotonic()
+            browser.get(f"{server.url}index.html?model={name}")
+            error, loaded, shown = wait_message(browser, 5.0)
+            assert error and error.startswith(f"{name}: ") and shown == error, (name, error, shown)
+            assert time.monotonic() - start < 5.0
+    finally:
+        server.close()
