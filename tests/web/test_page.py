@@ -230,6 +230,8 @@ def ranged_site(tmp_path_factory):
     data = bytearray((folder / "raw.stg").read_bytes())
     data[-40] ^= 0xFF  # the low byte of a float of the last segment (stored raw): only the checksum can tell
     (folder / "long_damaged.stg").write_bytes(bytes(data))
+    from stg_runtime.demo import demo_model
+    stg_format.save(demo_model("full", num_frames=10), folder / "one.stg", codec="raw")  # one segment, > 64 KiB
     server = page.Server(folder, page.RangeHandler)
     yield folder, server.url
     server.close()
@@ -333,3 +335,15 @@ def test_fuzzed_files_refused_by_python_end_in_a_message(tmp_path, browser):
             assert time.monotonic() - start < 5.0
     finally:
         server.close()
+
+
+def test_one_segment_file_from_a_range_server(ranged_site, browser):
+    """A one-segment file larger than the first range: the rest in one request, checked as a whole."""
+    folder, url = ranged_site
+    player = Player(folder / "one.stg", device="cpu")
+    page.RangeHandler.sent.clear()
+    open_model(browser, url, "one.stg")
+    image = page.snapshot(browser, player.cameras[0].to_dict(), 0.2)
+    assert page.psnr(image[..., :3], player.render(player.cameras[0], 0.2)) >= MIN_PSNR
+    size = (folder / "one.stg").stat().st_size
+    assert size > 65536 and sum(n for path, n in page.RangeHandler.sent if path == "/one.stg") == size
