@@ -153,7 +153,7 @@ ${Array.from({ length: L.texels }, (_, k) => `  vec4 d${k} = texelFetch(u_data, 
   // The quad: the footprint's box, or where smaller the rectangle along the ellipse's axes that holds
   // power <= thr (both hold every pixel that can pass; the fragment shader tests the box).
   float disc = sqrt(max(0.0, mid * mid - det));
-  vec2 e = sqrt(2.0 * thr * vec2(mid + disc, max(mid - disc, 0.0)));
+  vec2 e = sqrt(2.0 * thr * vec2(mid + disc, det / (mid + disc)));  // (the smaller eigenvalue, without cancellation)
   vec2 axis = abs(b) > 1e-9 * mid ? normalize(vec2(b, mid + disc - a)) : (a >= c ? vec2(1.0, 0.0) : vec2(0.0, 1.0));
   g_quad = e.x * e.y < h.x * h.y ? vec4(axis, e) : vec4(1.0, 0.0, h);
   g_f0 = vec4(v_f0, 0.0);${full ? `
