@@ -347,3 +347,30 @@ def test_one_segment_file_from_a_range_server(ranged_site, browser):
     assert page.psnr(image[..., :3], player.render(player.cameras[0], 0.2)) >= MIN_PSNR
     size = (folder / "one.stg").stat().st_size
     assert size > 65536 and sum(n for path, n in page.RangeHandler.sent if path == "/one.stg") == size
+
+
+def test_embedding_snippet_of_the_docs_plays(tmp_path, browser):
+    """docs/web.md's embedding example, as written, in a page beside an exported site/: the canvas shows
+    the model."""
+    import io
+
+    import imageio.v3 as iio
+    from selenium.webdriver.common.by import By
+    blocks = re.findall(r"(?ms)^```html\n(.*?)^```", (ROOT / "docs" / "web.md").read_text())
+    snippet = next(b for b in blocks if "StgPlayer" in b)
+    model = tmp_path / "model.stg"
+    shutil.copy(VECTORS / "full.stg", model)
+    export_web(model, tmp_path / "site")
+    (tmp_path / "embed.html").write_text(f"<!doctype html>\n<html><body style='margin:0'>\n{snippet}</body></html>\n")
+    server = page.Server(tmp_path)
+    try:
+        browser.get(f"{server.url}embed.html")
+        canvas = browser.find_element(By.ID, "scene")
+        for _ in range(100):
+            shot = iio.imread(io.BytesIO(canvas.screenshot_as_png))[..., :3]
+            if shot.max() > 50:
+                break
+            time.sleep(0.1)
+        assert shot.max() > 50 and shot.std() > 5, "the embedded canvas stayed blank"
+    finally:
+        server.close()
