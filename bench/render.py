@@ -90,7 +90,7 @@ def cuda_main(args, sizes, kinds, counts) -> None:
           "the sort above; numba sort: the same splat with stg_runtime.cuda.sort's radix sort; decode: fused "
           "kernel; onnx: onnxruntime " + ("CUDA provider" if cuda_provider_available() else
                                           "CPU provider, through the host") + "\n")
-    print(f"{'model':<8}{'size':>10}{'FPS':>8}{'ms/frame':>10}{'moving':>8}{'eval ms':>9}{'splat ms':>10}"
+    print(f"{'model':<8}{'size':>10}{'N':>8}{'FPS':>8}{'ms/frame':>10}{'moving':>8}{'eval ms':>9}{'splat ms':>10}"
           f"{'numba sort':>12}{'decode ms':>11}{'onnx ms':>9}{'gsplat ms':>11}{'layers':>8}{'p99':>5}{'foot':>7}"
           f"{'in view':>9}")
 
@@ -136,7 +136,7 @@ def cuda_main(args, sizes, kinds, counts) -> None:
             t_onnx = gpu_seconds(lambda: onnx(feats, cam), args.repeats)
         t_gsplat = _gsplat_seconds([a.copy_to_host() for a in g], cam, args.repeats) if args.gsplat else None
         gs = f"{1000 * t_gsplat:>11.2f}" if t_gsplat else f"{'n/a':>11}"
-        print(f"{kind:<8}{f'{w}x{h} {n // 1000}k':>10}{1 / total:>8.1f}{1000 * total:>10.2f}{1000 * moving:>8.2f}"
+        print(f"{kind:<8}{f'{w}x{h}':>10}{seg.count:>8}{1 / total:>8.1f}{1000 * total:>10.2f}{1000 * moving:>8.2f}"
               f"{1000 * t_eval:>9.2f}{1000 * t_splat:>10.2f}"
               f"{1000 * t_numba_sort:>12.2f}{1000 * t_dec:>11.2f}{1000 * t_onnx:>9.2f}{gs}"
               f"{load.mean_layers:>8.1f}{load.p99_layers:>5.0f}{load.mean_footprint:>7.0f}{load.in_view:>9}", flush=True)
