@@ -202,8 +202,6 @@ def _check_arguments(parser: argparse.ArgumentParser, args) -> None:
     if (args.ray is not None or args.gpus is not None) and args.viewer is not None:
         parser.error(f"--viewer shows a run of this process, but with {'--ray' if args.ray is not None else '--gpus'} "
                      "the segments train in worker processes: leave out --viewer (or the parallel option)")
-    if args.gpus is not None and args.device != "cuda":
-        parser.error("--gpus trains on GPUs: add --device cuda (or use --ray for CPU workers)")
 
 
 def _resume_command(argv) -> str:
@@ -217,6 +215,8 @@ def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     _check_arguments(parser, args)
+    if args.gpus is not None and args.device != "cuda":
+        return error(PROG, "--gpus trains on GPUs: add --device cuda (or use --ray for CPU workers)")
     given = _given(args, given_options(parser, argv))
     out = Path(args.out or "stg-demo")
     try:

@@ -136,7 +136,7 @@ def test_missing_paths_and_missing_ray(local_ray, scene_dir, tmp_path, monkeypat
     assert "nowhere: no such directory" in capsys.readouterr().err
     (tmp_path / "file").write_text("")
     assert train_main([str(scene_dir), "--out", str(tmp_path / "file" / "out"), "--ray"] + ARGS) == 2
-    assert "out: cannot create the output folder" in capsys.readouterr().err
+    assert "out: cannot create it" in capsys.readouterr().err
     monkeypatch.setitem(sys.modules, "ray", None)  # as without the distributed extra
     assert train_main([str(scene_dir), "--out", str(tmp_path / "o"), "--ray"] + ARGS) == 2
     err = capsys.readouterr().err
