@@ -106,12 +106,16 @@ def test_reference_depth_is_the_views_largest_rendered_depth(half_scene):
     np.testing.assert_allclose(z[k:] / min(7.5 * d, far), 1, atol=0.05 + 1e-6)
 
 
-def test_reference_needs_two_views_below_the_threshold(dataset):
+def _trainer_and_renders(dataset):
+    """A fresh trainer and its renders of every training view at time 0 (clamped to [0, 1])."""
     trainer = Trainer(dataset, TrainConfig(iterations=1, num_points=500, guided=False, depth_candidates=0))
-    renders = {}
     with torch.no_grad():
-        for ci in dataset.train_cameras:
-            renders[ci] = trainer.render(dataset.cameras[ci], 0.0)[0].clamp(0, 1)
+        renders = {ci: trainer.render(dataset.cameras[ci], 0.0)[0].clamp(0, 1) for ci in dataset.train_cameras}
+    return trainer, renders
+
+
+def test_reference_needs_two_views_below_the_threshold(dataset):
+    trainer, renders = _trainer_and_renders(dataset)
     bad = dataset.train_cameras[0]
     gt = {ci: (1 - r if ci == bad else r) for ci, r in renders.items()}  # one view far off, the others perfect
     context = _context(trainer, lambda ci, j: gt[ci])
@@ -120,11 +124,7 @@ def test_reference_needs_two_views_below_the_threshold(dataset):
 
 
 def test_nothing_added_when_ssim_is_high(dataset):
-    trainer = Trainer(dataset, TrainConfig(iterations=1, num_points=500, guided=False, depth_candidates=0))
-    renders = {}
-    with torch.no_grad():
-        for ci in dataset.train_cameras:
-            renders[ci] = trainer.render(dataset.cameras[ci], 0.0)[0].clamp(0, 1)
+    trainer, renders = _trainer_and_renders(dataset)
     context = _context(trainer, lambda ci, j: renders[ci])  # the model is perfect: SSIM 1
     guided = GuidedSampling(Schedule())
     assert guided.choose_views(context) == []
