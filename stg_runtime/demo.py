@@ -114,6 +114,20 @@ def demo_model(kind: str = "full", fps: float = 30.0, num_frames: int = 60, seed
                  provenance={"tool": "stg_runtime.demo", "settings": {"seed": seed}})
 
 
+def _random_motion(rng: np.random.Generator, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Random polynomial motion and rotation for Gaussians at `centres` (N, 3): position coefficients
+    (N, 4, 3) (the centre, then 0.05 x normal ones) and rotation coefficients (N, 2, 4) (a normal
+    quaternion, then 0.2 x a normal velocity), drawn from `rng` in that order."""
+    n = len(centres)
+    position = np.zeros((n, 4, 3))
+    position[:, 0] = centres
+    position[:, 1:] = 0.05 * rng.standard_normal((n, 3, 3))
+    rotation = np.zeros((n, 2, 4))
+    rotation[:, 0] = rng.standard_normal((n, 4))
+    rotation[:, 1] = 0.2 * rng.standard_normal((n, 4))
+    return position, rotation
+
+
 def random_segment(num_gaussians: int, kind: str = "lite", seed: int = 0, num_frames: int = 50,
                    width: int = 640, height: int = 360, radius_px=(0.5, 10.0)) -> Segment:
     """A plausible random scene for benchmarks, seen by `bench_camera(width, height)` (at the origin,
@@ -130,12 +144,7 @@ def random_segment(num_gaussians: int, kind: str = "lite", seed: int = 0, num_fr
     y = rng.uniform(-1, 1, n) * z * (height / 2) / fx
     sigma_px = np.exp(rng.uniform(np.log(radius_px[0]), np.log(radius_px[1]), n)) / 3.0
     scale = (sigma_px * z / fx)[:, None] * np.exp(rng.uniform(np.log(0.5), np.log(2.0), (n, 3)))
-    position = np.zeros((n, 4, 3))
-    position[:, 0] = np.stack([x, y, z], 1)
-    position[:, 1:] = 0.05 * rng.standard_normal((n, 3, 3))
-    rotation = np.zeros((n, 2, 4))
-    rotation[:, 0] = rng.standard_normal((n, 4))
-    rotation[:, 1] = 0.2 * rng.standard_normal((n, 4))
+    position, rotation = _random_motion(rng, np.stack([x, y, z], 1))
     channels = 9 if kind == "full" else 3
     features = rng.uniform(0, 1, (n, channels))
     decoder = None
@@ -210,12 +219,7 @@ def like_trained_segment(num_gaussians: int, width: int = 640, height: int = 360
     log_area = rng.normal(0.0, TRAINED_AREA_SIGMA, n)
     sigma_px = np.sqrt(mean_sigma2 * np.exp(log_area - TRAINED_AREA_SIGMA ** 2 / 2))
     scale = (sigma_px * z / fx)[:, None] * np.exp(rng.uniform(np.log(0.5), np.log(2.0), (n, 3)))
-    position = np.zeros((n, 4, 3))
-    position[:, 0] = np.stack([x, y, z], 1)
-    position[:, 1:] = 0.05 * rng.standard_normal((n, 3, 3))
-    rotation = np.zeros((n, 2, 4))
-    rotation[:, 0] = rng.standard_normal((n, 4))
-    rotation[:, 1] = 0.2 * rng.standard_normal((n, 4))
+    position, rotation = _random_motion(rng, np.stack([x, y, z], 1))
     mu, sd = TRAINED_OPACITY_LOGIT
     opacity = 1.0 / (1.0 + np.exp(-rng.normal(mu, sd, n)))
     t_scale = TRAINED_T_SCALE[0] * np.exp(rng.normal(0.0, TRAINED_T_SCALE[1], n))
