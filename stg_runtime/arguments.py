@@ -44,24 +44,24 @@ def given_options(parser: argparse.ArgumentParser, argv) -> set[str]:
     return set(vars(probe.parse_known_args(argv)[0]))
 
 
-def positive_int(text: str) -> int:
+def _int_at_least(text: str, minimum: int, wanted: str) -> int:
+    """int(text), or argparse.ArgumentTypeError "must be <wanted>, got ..." when it is not one or is
+    below `minimum`."""
     try:
         value = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}") from None
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}")
+        value = None
+    if value is None or value < minimum:
+        raise argparse.ArgumentTypeError(f"must be {wanted}, got {text!r}")
     return value
+
+
+def positive_int(text: str) -> int:
+    return _int_at_least(text, 1, "a positive integer")
 
 
 def nonnegative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be an integer 0 or more, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be an integer 0 or more, got {text!r}")
-    return value
+    return _int_at_least(text, 0, "an integer 0 or more")
 
 
 def finite_float(text: str) -> float:
