@@ -34,6 +34,16 @@ DATA is a dataset folder in one of these layouts (detected, or forced with --lay
 Writes OUT/model.stg (the player's file), OUT/checkpoint.pt and OUT/metrics.json. A video longer than
 --segment-frames is trained as consecutive independent segments, each in OUT/segments/NN/ (checkpoint.pt,
 model.stg, metrics.json), merged into one OUT/model.stg once every segment is trained.
+
+Defaults, against the paper's reference code (measured in docs/training.md, "Deviations from the
+reference"): the model's formulas, the losses and the densification statistic (each view's
+screen-gradient norm, averaged over the views that see a Gaussian, as gsplat does; it does not depend
+on --batch) are the reference's. Ours, each kept because the reference's measured no better:
+view-volume initial points (--init; the reference uses SfM), initial motion from the optical flow
+(--motion-init; the reference starts at zero), learning rates stretched to --iterations (the
+reference's are set for 30000 steps), guided sampling at the error patch's median depth after one
+poor view (the reference: the view's maximum depth, two views), pruning applied at densification,
+scale learning rate 0.005 (the reference's N3V configurations: 0.003), no rotation/motion separation.
 Exit codes: 0 done, 2 bad data or arguments."""
 
 
