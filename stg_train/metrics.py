@@ -260,3 +260,66 @@ def evaluate_player(player, dataset, camera_indices=None, frames=None, lpips: di
 def heldout(result: dict) -> dict:
     """The HELDOUT_KEYS, REGION_KEYS (and LPIPS_KEYS where computed) of an evaluate_player result."""
     return {k: result[k] for k in HELDOUT_KEYS + REGION_KEYS + LPIPS_KEYS if k in result}
+
+
+def temporal_errors(renders, truths) -> np.ndarray:
+    """(F - 1,) float64: for each pair of consecutive frames j, j + 1, the mean over pixels and channels
+    of |(R[j+1] - R[j]) - (G[j+1] - G[j])|: how far the rendered change departs from the true change
+    (a pop where two independent models meet shows as a large value). renders, truths: F images
+    (H, W, 3) in [0, 1] of one view."""
+    r = np.asarray(renders, np.float64)
+    g = np.asarray(truths, np.float64)
+    if r.shape != g.shape or r.ndim != 4 or len(r) < 2:
+        raise ValueError(f"temporal_errors: need two equal (F >= 2, H, W, 3) stacks, got {r.shape} and {g.shape}")
+    return np.abs(np.diff(r, axis=0) - np.diff(g, axis=0)).mean(axis=(1, 2, 3))
+
+
+def seam_figures(frame_psnrs, pair_errors, starts) -> dict:
+    """The seams of a model cut into segments starting at frames `starts` (the first is 0), from
+    per-frame PSNRs (F,) (dB; e.g. means over views) and temporal_errors (F - 1,) (means over views).
+    Boundary frames are each segment's first and last frames; the others are interior. Returns
+    interior_psnr (mean over interior frames), boundary {frame: psnr}, worst_dip (interior_psnr minus
+    the lowest boundary PSNR, dB; positive = worse), interior_pair_error (mean temporal error of the
+    pairs within a segment), seams {first frame of a segment: temporal error of the pair across its
+    seam} and flicker_ratio (the largest seam error over interior_pair_error; None for one segment)."""
+    psnrs = np.asarray(frame_psnrs, np.float64)
+    pairs = np.asarray(pair_errors, np.float64)
+    frames = len(psnrs)
+    starts = sorted(set(int(s) for s in starts))
+    if not starts or starts[0] != 0 or starts[-1] >= frames or len(pairs) != frames - 1:
+        raise ValueError(f"seam_figures: segment starts {starts} do not cut {frames} frames, "
+                         f"or {len(pairs)} pair errors for {frames} frames")
+    ends = starts[1:] + [frames]
+    boundary = sorted({s for s in starts} | {e - 1 for e in ends})
+    interior = np.setdiff1d(np.arange(frames), boundary)
+    interior_psnr = float(psnrs[interior].mean()) if len(interior) else float("nan")
+    seams = {s: float(pairs[s - 1]) for s in starts[1:]}
+    inner = np.setdiff1d(np.arange(frames - 1), [s - 1 for s in starts[1:]])
+    inner_error = float(pairs[inner].mean()) if len(inner) else float("nan")
+    return {"interior_psnr": interior_psnr, "boundary": {f: float(psnrs[f]) for f in boundary},
+            "worst_dip": interior_psnr - float(psnrs[boundary].min()),
+            "interior_pair_error": inner_error, "seams": seams,
+            "flicker_ratio": max(seams.values()) / inner_error if seams and inner_error > 0 else None}
+
+
+def evaluate_seams(player, dataset, camera_indices=None, frames=None) -> dict | None:
+    """seam_figures of a multi-segment model played by a stg_runtime Player, over dataset cameras
+    (default: the held-out ones) at `frames` (default every frame; a range of consecutive frames):
+    per-frame PSNR and temporal_errors, each the mean over the cameras. None when those frames hold
+    fewer than two of the model's segments (no seam to measure)."""
+    cams = dataset.test_cameras if camera_indices is None else list(camera_indices)
+    frames = range(dataset.num_frames) if frames is None else frames
+    start_frame = getattr(dataset, "start_frame", 0)
+    starts = [s.start_frame - start_frame - frames.start for s in player.model.segments
+              if frames.start < s.start_frame - start_frame < frames.stop]
+    if not starts or len(frames) < 2 or not cams:
+        return None
+    psnrs, pairs = [], []
+    for ci in cams:
+        renders = np.stack([player.render(dataset.cameras[ci], (start_frame + j) / dataset.fps) for j in frames])
+        truths = np.stack([dataset.image(ci, j) for j in frames])
+        psnrs.append([psnr(r, g) for r, g in zip(renders, truths)])
+        pairs.append(temporal_errors(renders, truths))
+    figures = seam_figures(np.mean(psnrs, axis=0), np.mean(pairs, axis=0), [0] + starts)
+    shift = lambda d: {frames.start + k: v for k, v in d.items()}  # noqa: E731  (back to dataset frames)
+    return {**figures, "boundary": shift(figures["boundary"]), "seams": shift(figures["seams"])}

@@ -19,7 +19,12 @@ line on stderr says why when it is left out), render FPS, model size.
 
 PSNR and SSIM are also given apart for the dynamic pixels (those whose ground truth changes over the
 evaluated frames by more than --dynamic-threshold in some colour channel: moving objects, what appears
-or vanishes, their shadows) and the static rest; docs/dynamic.md explains the measure."""
+or vanishes, their shadows) and the static rest; docs/dynamic.md explains the measure.
+
+For a model of several segments, the seams too (docs/training.md, "Seams"): the worst boundary dip (the
+interior frames' mean PSNR minus the lowest PSNR of a segment's first or last frame, dB) and the seam
+flicker ratio (the temporal error mean |(R[j+1] - R[j]) - (G[j+1] - G[j])| across the worst seam over
+that of the pairs inside segments; 1 means no pop)."""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -63,7 +68,7 @@ def main(argv=None) -> int:
     from stg_runtime.player import Player, RenderError
 
     from ..data import DataError, load_dataset
-    from ..metrics import evaluate_player, heldout, lpips_models
+    from ..metrics import evaluate_player, evaluate_seams, heldout, lpips_models
     from ..pipeline import check_cameras, model_frames
 
     try:
@@ -87,6 +92,7 @@ def main(argv=None) -> int:
         print(f"{PROG}: {why}", file=sys.stderr)
     try:
         result = evaluate_player(player, dataset, frames=frames, lpips=lpips, threshold=args.dynamic_threshold)
+        seams = evaluate_seams(player, dataset, frames=frames)
     except RenderError as e:
         return error(PROG, str(e))
     size = Path(args.model).stat().st_size
@@ -94,11 +100,16 @@ def main(argv=None) -> int:
     print(format_table(result, size, count))
     summary = heldout(result)
     summary.update(model=str(args.model), data=str(args.data), file_bytes=size, gaussians=count)
+    if seams is not None:
+        summary.update(worst_boundary_dip=seams["worst_dip"], seam_flicker_ratio=seams["flicker_ratio"])
+        print(f"seams: worst boundary dip {seams['worst_dip']:.2f} dB (interior {seams['interior_psnr']:.2f} dB), "
+              f"flicker ratio {seams['flicker_ratio']:.2f} (temporal error at the worst seam over inside "
+              f"segments)", file=sys.stderr)
     print(json.dumps(summary))
     if args.json:
         from stg_runtime.atomic import write_atomic
 
-        write_atomic(args.json, json.dumps({**summary, "per_frame": result["per_frame"]}, indent=1) + "\n")
+        write_atomic(args.json, json.dumps({**summary, "per_frame": result["per_frame"], "seams": seams}, indent=1) + "\n")
     return 0
 
 

@@ -117,3 +117,56 @@ def test_aligned_psnr_undoes_one_affine_colour_map_per_camera():
     noisy = [t + rng.normal(0, 0.02, t.shape) for t in truth]
     aligned = metrics.aligned_psnrs([metrics.affine_moments(r, t) for r, t in zip(noisy, truth)])
     assert np.mean(aligned) >= np.mean([metrics.psnr(r, t) for r, t in zip(noisy, truth)]) - 1e-9
+
+
+def test_temporal_errors_measure_a_pop_not_a_steady_offset():
+    rng = np.random.default_rng(0)
+    truth = rng.random((5, 4, 6, 3))
+    steady = truth + 0.1  # a constant error follows the true change: no temporal error
+    np.testing.assert_allclose(metrics.temporal_errors(steady, truth), 0.0, atol=1e-12)
+    popped = truth.copy()
+    popped[3:] += 0.2  # a jump of 0.2 between frames 2 and 3 only
+    np.testing.assert_allclose(metrics.temporal_errors(popped, truth), [0, 0, 0.2, 0], atol=1e-12)
+    with pytest.raises(ValueError, match="two equal"):
+        metrics.temporal_errors(popped[:1], truth[:1])
+
+
+def test_seam_figures_boundaries_dip_and_flicker():
+    psnrs = [30.0, 31, 31, 29.5, 30, 31, 31, 30.8]  # segments [0, 4) and [4, 8)
+    pairs = [0.01, 0.01, 0.01, 0.04, 0.01, 0.01, 0.01]
+    f = metrics.seam_figures(psnrs, pairs, [0, 4])
+    assert f["boundary"] == {0: 30.0, 3: 29.5, 4: 30.0, 7: 30.8}
+    assert f["interior_psnr"] == pytest.approx(31.0)
+    assert f["worst_dip"] == pytest.approx(1.5)
+    assert f["seams"] == {4: pytest.approx(0.04)}
+    assert f["interior_pair_error"] == pytest.approx(0.01)
+    assert f["flicker_ratio"] == pytest.approx(4.0)
+    assert metrics.seam_figures(psnrs, pairs, [0])["flicker_ratio"] is None
+    with pytest.raises(ValueError, match="do not cut"):
+        metrics.seam_figures(psnrs, pairs, [1, 4])
+
+
+def test_evaluate_seams_finds_the_pop_between_two_segments():
+    from types import SimpleNamespace
+
+    from stg_runtime.camera import Camera
+    from stg_train.data.dataset import Dataset
+
+    rng = np.random.default_rng(1)
+    frames = (rng.random((1, 6, 8, 10, 3)) * 200).astype(np.uint8)  # 1 camera x 6 frames
+    cam = Camera.from_opencv(np.array([[10.0, 0, 5], [0, 10, 4], [0, 0, 1]]), np.eye(4), 10, 8, name="cam00")
+    data = Dataset([cam], frames, 30.0, test_cameras=[0])
+
+    def render(camera, t):  # segment 0 (frames 0-2) brighter by 0.05 (26.02 dB), segment 1 by 0.1 (20 dB)
+        j = int(round(t * 30.0))
+        return data.image(0, j).astype(np.float64) + (0.1 if j >= 3 else 0.05)
+
+    player = SimpleNamespace(render=render, model=SimpleNamespace(segments=[SimpleNamespace(start_frame=0),
+                                                                            SimpleNamespace(start_frame=3)]))
+    seams = metrics.evaluate_seams(player, data)
+    assert seams["seams"] == {3: pytest.approx(0.05)}
+    assert seams["interior_pair_error"] == pytest.approx(0.0, abs=1e-9)
+    assert set(seams["boundary"]) == {0, 2, 3, 5}
+    assert seams["interior_psnr"] == pytest.approx((26.0206 + 20.0) / 2, abs=1e-3)  # frames 1 and 4
+    assert seams["worst_dip"] == pytest.approx(3.0103, abs=1e-3)
+    assert metrics.evaluate_seams(player, data, frames=range(0, 3)) is None  # one segment: no seam

@@ -1,0 +1,118 @@
+#!/usr/bin/env python
+"""Seams of long videos (issue 32): a synthetic clip trained as consecutive independent segments,
+played by the runtime Player, scored frame by frame against the lossless ground truth.
+
+    python bench/seams.py [--frames 60] [--segment-frames 30] [--iterations 1500] [--points 8000]
+                          [--width 160] [--height 120] [--seed 0] [--one-frame] [--json PATH]
+
+Views: the held-out camera cam00 and the two novel rig views of stg_train.synthetic.novel_view_dataset.
+Prints, over those views:
+- each frame's PSNR (the mean of the views' PSNRs, dB), the interior mean and each boundary frame
+  (a segment's first and last frames), and the worst dip (interior mean minus the lowest boundary frame);
+- the temporal error of consecutive frames, mean |(R[j+1] - R[j]) - (G[j+1] - G[j])|, at each seam
+  against the pairs inside a segment, and their ratio (the flicker at a seam);
+- with --one-frame: at the first, middle and last frames of segment 0, the held-out camera's dynamic
+  pixels (stg_train.metrics.dynamic_mask over the clip) against a model trained on that frame alone
+  (bench/ablation.py's per-frame reference): how far behind the segment's model is there.
+
+The figures are stg_train.metrics.seam_figures; the clip is the demo scene's (stg_train.synthetic),
+written once per size into a temp folder (or --data). Training settings are the defaults of
+stg-train (TrainConfig) with --iterations and --points; --set KEY=VALUE changes a TrainConfig field
+(VALUE as JSON, else a string), to compare a method against the baseline.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+import stg_train  # noqa: F401  (first: it configures OpenMP before torch loads)
+import numpy as np
+
+from stg_runtime.player import Player
+from stg_train.config import TrainConfig
+from stg_train.data import load_n3v
+from stg_train.metrics import psnr, seam_figures, temporal_errors
+from stg_train.pipeline import ensure_demo_scene, train
+from stg_train.synthetic import SyntheticScene, novel_view_dataset
+
+sys.path.insert(0, str(Path(__file__).parent))
+from ablation import frame_figures, parse_setting, per_frame_reference  # noqa: E402
+
+
+def view_stacks(player: Player, dataset, camera_index: int) -> tuple[np.ndarray, np.ndarray]:
+    """(renders, truths): (F, H, W, 3) float32 of the Player at every frame of `dataset`'s camera."""
+    cam = dataset.cameras[camera_index]
+    renders = np.stack([player.render_frame(cam, j) for j in range(dataset.num_frames)])
+    truths = np.stack([dataset.image(camera_index, j) for j in range(dataset.num_frames)])
+    return renders, truths
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--frames", type=int, default=60)
+    ap.add_argument("--segment-frames", type=int, default=30)
+    ap.add_argument("--iterations", type=int, default=1500, help="training steps per segment")
+    ap.add_argument("--points", type=int, default=8000)
+    ap.add_argument("--width", type=int, default=160)
+    ap.add_argument("--height", type=int, default=120)
+    ap.add_argument("--seed", type=int, default=0, help="training seed")
+    ap.add_argument("--set", type=parse_setting, action="append", default=[], metavar="KEY=VALUE",
+                    help="a TrainConfig field (VALUE as JSON, else a string)")
+    ap.add_argument("--one-frame", action="store_true",
+                    help="also train one-frame references at segment 0's first, middle and last frames")
+    ap.add_argument("--data", default=None, help="scene folder (written once; default: a temp folder per size)")
+    ap.add_argument("--out", default=None, help="training folder (default: a new temp folder)")
+    ap.add_argument("--json", default=None, help="also write the figures as JSON here")
+    args = ap.parse_args()
+
+    size = f"12x{args.frames}-{args.width}x{args.height}"
+    data = Path(args.data or os.path.join(tempfile.gettempdir(), f"stg-seams-scene-{size}"))
+    ensure_demo_scene(data, frames=args.frames, width=args.width, height=args.height)
+    ds = load_n3v(data, prefer_png=True)
+    scene = SyntheticScene(seed=0, duration=args.frames / ds.fps)
+    novel = novel_view_dataset(scene, args.frames, ds.fps, args.width, args.height)
+    config = TrainConfig(iterations=args.iterations, num_points=args.points, seed=args.seed, **dict(args.set))
+    out = Path(args.out or tempfile.mkdtemp(prefix="stg-seams-"))
+    print(f"{ds}; segments of {args.segment_frames} frames, {args.iterations} steps each, {args.points} initial "
+          f"points, seed {args.seed}, settings {dict(args.set)}; training into {out}", flush=True)
+    train(ds, out, config, quiet=True, segment_frames=args.segment_frames)
+    player = Player(out / "model.stg", device="cpu")
+    starts = [s.start_frame for s in player.model.segments]
+
+    views = [(ds, i) for i in ds.test_cameras] + [(novel, i) for i in range(len(novel.cameras))]
+    frame_psnrs, pair_errors = [], []
+    for dataset, ci in views:
+        renders, truths = view_stacks(player, dataset, ci)
+        frame_psnrs.append([psnr(r, g) for r, g in zip(renders, truths)])
+        pair_errors.append(temporal_errors(renders, truths))
+    figures = seam_figures(np.mean(frame_psnrs, axis=0), np.mean(pair_errors, axis=0), starts)
+
+    print(f"interior mean {figures['interior_psnr']:.2f} dB; boundary frames: " + ", ".join(
+        f"{f}: {p:.2f} dB ({p - figures['interior_psnr']:+.2f})" for f, p in figures["boundary"].items()))
+    print(f"worst dip {figures['worst_dip']:.2f} dB")
+    print(f"temporal error inside segments {figures['interior_pair_error']:.4f}; at the seams: " + ", ".join(
+        f"{s - 1}->{s}: {e:.4f} ({e / figures['interior_pair_error']:.2f}x)" for s, e in figures["seams"].items()))
+    one_frame = {}
+    if args.one_frame:
+        first = player.model.segments[0]
+        cam = ds.cameras[ds.test_cameras[0]]
+        for j in (first.start_frame, first.start_frame + first.num_frames // 2,
+                  first.start_frame + first.num_frames - 1):
+            ref = per_frame_reference(ds, ds, config, j)
+            got = frame_figures(player.render_frame(cam, j), ds, j)
+            one_frame[j] = {"one_frame": ref, "segment": got}
+            print(f"frame {j}: dynamic pixels {got['dynamic_psnr']:.2f} dB, one-frame model "
+                  f"{ref['dynamic_psnr']:.2f} dB: {ref['dynamic_psnr'] - got['dynamic_psnr']:.2f} behind", flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps({"settings": {**vars(args), "set": dict(args.set)},
+                                               "frame_psnr": np.mean(frame_psnrs, axis=0).tolist(),
+                                               "pair_error": np.mean(pair_errors, axis=0).tolist(),
+                                               "figures": figures, "one_frame": one_frame}, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
