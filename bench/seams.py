@@ -35,20 +35,12 @@ import numpy as np
 from stg_runtime.player import Player
 from stg_train.config import TrainConfig
 from stg_train.data import load_n3v
-from stg_train.metrics import psnr, seam_figures, temporal_errors
+from stg_train.metrics import frame_series, seam_figures
 from stg_train.pipeline import ensure_demo_scene, train
 from stg_train.synthetic import SyntheticScene, novel_view_dataset
 
 sys.path.insert(0, str(Path(__file__).parent))
 from ablation import frame_figures, parse_setting, per_frame_reference  # noqa: E402
-
-
-def view_stacks(player: Player, dataset, camera_index: int) -> tuple[np.ndarray, np.ndarray]:
-    """(renders, truths): (F, H, W, 3) float32 of the Player at every frame of `dataset`'s camera."""
-    cam = dataset.cameras[camera_index]
-    renders = np.stack([player.render_frame(cam, j) for j in range(dataset.num_frames)])
-    truths = np.stack([dataset.image(camera_index, j) for j in range(dataset.num_frames)])
-    return renders, truths
 
 
 def main() -> None:
@@ -84,11 +76,7 @@ def main() -> None:
     starts = [s.start_frame for s in player.model.segments]
 
     views = [(ds, i) for i in ds.test_cameras] + [(novel, i) for i in range(len(novel.cameras))]
-    frame_psnrs, pair_errors = [], []
-    for dataset, ci in views:
-        renders, truths = view_stacks(player, dataset, ci)
-        frame_psnrs.append([psnr(r, g) for r, g in zip(renders, truths)])
-        pair_errors.append(temporal_errors(renders, truths))
+    frame_psnrs, pair_errors = zip(*(frame_series(player, d, ci, range(d.num_frames)) for d, ci in views))
     figures = seam_figures(np.mean(frame_psnrs, axis=0), np.mean(pair_errors, axis=0), starts)
 
     print(f"interior mean {figures['interior_psnr']:.2f} dB; boundary frames: " + ", ".join(

@@ -302,6 +302,17 @@ def seam_figures(frame_psnrs, pair_errors, starts) -> dict:
             "flicker_ratio": max(seams.values()) / inner_error if seams and inner_error > 0 else None}
 
 
+def frame_series(player, dataset, camera_index: int, frames) -> tuple[np.ndarray, np.ndarray]:
+    """(psnrs (F,), temporal errors (F - 1,)) of a stg_runtime Player at dataset camera `camera_index`
+    over `frames` (consecutive dataset frames; a Dataset.frame_range view's frame j is video frame
+    start_frame + j)."""
+    start_frame = getattr(dataset, "start_frame", 0)
+    cam = dataset.cameras[camera_index]
+    renders = np.stack([player.render(cam, (start_frame + j) / dataset.fps) for j in frames])
+    truths = np.stack([dataset.image(camera_index, j) for j in frames])
+    return np.array([psnr(r, g) for r, g in zip(renders, truths)]), temporal_errors(renders, truths)
+
+
 def evaluate_seams(player, dataset, camera_indices=None, frames=None) -> dict | None:
     """seam_figures of a multi-segment model played by a stg_runtime Player, over dataset cameras
     (default: the held-out ones) at `frames` (default every frame; a range of consecutive frames):
@@ -314,12 +325,7 @@ def evaluate_seams(player, dataset, camera_indices=None, frames=None) -> dict | 
               if frames.start < s.start_frame - start_frame < frames.stop]
     if not starts or len(frames) < 2 or not cams:
         return None
-    psnrs, pairs = [], []
-    for ci in cams:
-        renders = np.stack([player.render(dataset.cameras[ci], (start_frame + j) / dataset.fps) for j in frames])
-        truths = np.stack([dataset.image(ci, j) for j in frames])
-        psnrs.append([psnr(r, g) for r, g in zip(renders, truths)])
-        pairs.append(temporal_errors(renders, truths))
+    psnrs, pairs = zip(*(frame_series(player, dataset, ci, frames) for ci in cams))
     figures = seam_figures(np.mean(psnrs, axis=0), np.mean(pairs, axis=0), [0] + starts)
     shift = lambda d: {frames.start + k: v for k, v in d.items()}  # noqa: E731  (back to dataset frames)
     return {**figures, "boundary": shift(figures["boundary"]), "seams": shift(figures["seams"])}
