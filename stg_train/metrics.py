@@ -14,6 +14,12 @@ literature also scores each held-out camera after one affine colour map (3x3 + b
 by least squares from the renders to the ground truth over all of that camera's evaluated frames. It is
 computed exactly from per-image second moments (`affine_moments`), so no image is kept; the mapped
 image is not clipped to [0, 1].
+
+Seams of a model cut into segments (`evaluate_seams`): each frame's PSNR, and the temporal error of
+consecutive frames, mean |(R[j+1] - R[j]) - (G[j+1] - G[j])| (`temporal_errors`: a rendered change that
+the ground truth does not have, such as a pop where two segments meet), summarised by `seam_figures`
+as the worst dip of a segment's first or last frame below the interior frames and the flicker ratio
+of the worst seam against the pairs inside segments.
 """
 from __future__ import annotations
 
