@@ -129,9 +129,17 @@ def test_eval_on_multi_segment_and_single_segment_files(full_run, scene_dir, tmp
     assert eval_main([str(full_run / "model.stg"), str(scene_dir), "--json", str(tmp_path / "e.json"), "--quiet"]) == 0
     figures = json.loads((tmp_path / "e.json").read_text())
     assert figures["images"] == 8 and abs(figures["psnr"] - metrics["heldout"]["psnr"]) < 1e-6
+    seams, rows = figures["seams"], {r["frame"]: r["psnr"] for r in figures["per_frame"]}  # one held-out camera
+    assert sorted(seams["boundary"]) == ["0", "3", "4", "7"] and list(seams["seams"]) == ["4"]
+    assert all(abs(seams["boundary"][k] - rows[int(k)]) < 1e-4 for k in seams["boundary"])
+    interior = np.mean([rows[j] for j in (1, 2, 5, 6)])
+    assert abs(figures["worst_boundary_dip"] - (interior - min(rows[j] for j in (0, 3, 4, 7)))) < 1e-4
+    assert figures["seam_flicker_ratio"] > 0
     one = full_run / "segments" / "01" / "model.stg"
     assert eval_main([str(one), str(scene_dir), "--json", str(tmp_path / "s.json"), "--quiet"]) == 0
-    assert [r["frame"] for r in json.loads((tmp_path / "s.json").read_text())["per_frame"]] == [4, 5, 6, 7]
+    single = json.loads((tmp_path / "s.json").read_text())
+    assert [r["frame"] for r in single["per_frame"]] == [4, 5, 6, 7]
+    assert single["seams"] is None and "seam_flicker_ratio" not in single  # one segment: no seam
     assert "covers frames 4-7" in capsys.readouterr().err
 
 
