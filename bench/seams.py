@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Seams of long videos (issue 32): a synthetic clip trained as consecutive independent segments,
+"""Seams of long videos: a synthetic clip trained as consecutive independent segments,
 played by the runtime Player, scored frame by frame against the lossless ground truth.
 
     python bench/seams.py [--frames 60] [--segment-frames 30] [--iterations 1500] [--points 8000]
