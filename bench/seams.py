@@ -15,7 +15,7 @@ Prints, over those views:
   pixels (stg_train.metrics.dynamic_mask over the clip) against a model trained on that frame alone
   (bench/ablation.py's per-frame reference): how far behind the segment's model is there.
 
-The figures are stg_train.metrics.seam_figures; the clip is the demo scene's (stg_train.synthetic),
+The figures are stg_train.metrics.evaluate_seams over the views' evaluate_player rows; the clip is the demo scene's (stg_train.synthetic),
 written once per size into a temp folder (or --data). Training settings are the defaults of
 stg-train (TrainConfig) with --iterations and --points; --set KEY=VALUE changes a TrainConfig field
 (VALUE as JSON, else a string), to compare a method against the baseline.
@@ -30,12 +30,11 @@ import tempfile
 from pathlib import Path
 
 import stg_train  # noqa: F401  (first: it configures OpenMP before torch loads)
-import numpy as np
 
 from stg_runtime.player import Player
 from stg_train.config import TrainConfig
 from stg_train.data import load_n3v
-from stg_train.metrics import frame_series, seam_figures
+from stg_train.metrics import evaluate_player, evaluate_seams
 from stg_train.pipeline import ensure_demo_scene, train
 from stg_train.synthetic import SyntheticScene, novel_view_dataset
 
@@ -73,11 +72,8 @@ def main() -> None:
           f"points, seed {args.seed}, settings {dict(args.set)}; training into {out}", flush=True)
     train(ds, out, config, quiet=True, segment_frames=args.segment_frames)
     player = Player(out / "model.stg", device="cpu")
-    starts = [s.start_frame for s in player.model.segments]
-
-    views = [(ds, i) for i in ds.test_cameras] + [(novel, i) for i in range(len(novel.cameras))]
-    frame_psnrs, pair_errors = zip(*(frame_series(player, d, ci, range(d.num_frames)) for d, ci in views))
-    figures = seam_figures(np.mean(frame_psnrs, axis=0), np.mean(pair_errors, axis=0), starts)
+    rows = evaluate_player(player, ds)["per_frame"] + evaluate_player(player, novel)["per_frame"]
+    figures = evaluate_seams({"per_frame": rows}, [s.start_frame for s in player.model.segments])
 
     print(f"interior mean {figures['interior_psnr']:.2f} dB; boundary frames: " + ", ".join(
         f"{f}: {p:.2f} dB ({p - figures['interior_psnr']:+.2f})" for f, p in figures["boundary"].items()))
@@ -97,9 +93,7 @@ def main() -> None:
                   f"{ref['dynamic_psnr']:.2f} dB: {ref['dynamic_psnr'] - got['dynamic_psnr']:.2f} behind", flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps({"settings": {**vars(args), "set": dict(args.set)},
-                                               "frame_psnr": np.mean(frame_psnrs, axis=0).tolist(),
-                                               "pair_error": np.mean(pair_errors, axis=0).tolist(),
-                                               "figures": figures, "one_frame": one_frame}, indent=1) + "\n")
+                                               "per_frame": rows, "figures": figures, "one_frame": one_frame}, indent=1) + "\n")
 
 
 if __name__ == "__main__":

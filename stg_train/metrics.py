@@ -215,7 +215,8 @@ def evaluate_images(render, dataset, camera_indices=None, frames=None, lpips: di
     Returns summarise's means ("psnr", "aligned_psnr" (the module docstring), "ssim", "dssim1",
     "dssim2", the REGION_KEYS, "lpips_<net>" for each network of `lpips`), "seconds" (spent in
     `render`), "images", "cameras" (names), "per_frame" (the per-image figures with camera name and
-    frame)."""
+    frame, and "temporal_error": temporal_errors of the pair ending at that frame, None where the
+    camera's previous image is not the frame before)."""
     cams = dataset.test_cameras if camera_indices is None else list(camera_indices)
     frames = list(range(dataset.num_frames)) if frames is None else list(frames)
     if not cams or not frames:
@@ -224,15 +225,18 @@ def evaluate_images(render, dataset, camera_indices=None, frames=None, lpips: di
     for ci in cams:
         mask = dynamic_mask((dataset.image(ci, j) for j in frames), threshold)
         masks.append(mask)
-        moments, first = [], len(rows)
+        moments, first, previous = [], len(rows), None
         for j in frames:
             start = time.perf_counter()
             image = render(ci, j)
             seconds += time.perf_counter() - start
             reference = dataset.image(ci, j)
             moments.append(affine_moments(image, reference))
+            pair = None if previous is None or previous[0] != j - 1 else float(
+                temporal_errors([previous[1], image], [previous[2], reference])[0])
             rows.append({"camera": dataset.cameras[ci].name, "frame": j,
-                         **image_metrics(image, reference, lpips, mask)})
+                         **image_metrics(image, reference, lpips, mask), "temporal_error": pair})
+            previous = (j, image, reference)
         for row, value in zip(rows[first:], aligned_psnrs(moments)):
             row["aligned_psnr"] = value
     return {**summarise(rows, masks, threshold), "seconds": seconds, "images": len(rows),
@@ -308,30 +312,21 @@ def seam_figures(frame_psnrs, pair_errors, starts) -> dict:
             "flicker_ratio": max(seams.values()) / inner_error if seams and inner_error > 0 else None}
 
 
-def frame_series(player, dataset, camera_index: int, frames) -> tuple[np.ndarray, np.ndarray]:
-    """(psnrs (F,), temporal errors (F - 1,)) of a stg_runtime Player at dataset camera `camera_index`
-    over `frames` (consecutive dataset frames; a Dataset.frame_range view's frame j is video frame
-    start_frame + j)."""
-    start_frame = getattr(dataset, "start_frame", 0)
-    cam = dataset.cameras[camera_index]
-    renders = np.stack([player.render(cam, (start_frame + j) / dataset.fps) for j in frames])
-    truths = np.stack([dataset.image(camera_index, j) for j in frames])
-    return np.array([psnr(r, g) for r, g in zip(renders, truths)]), temporal_errors(renders, truths)
-
-
-def evaluate_seams(player, dataset, camera_indices=None, frames=None) -> dict | None:
-    """seam_figures of a multi-segment model played by a stg_runtime Player, over dataset cameras
-    (default: the held-out ones) at `frames` (default every frame; a range of consecutive frames):
-    per-frame PSNR and temporal_errors, each the mean over the cameras. None when those frames hold
-    fewer than two of the model's segments (no seam to measure)."""
-    cams = dataset.test_cameras if camera_indices is None else list(camera_indices)
-    frames = range(dataset.num_frames) if frames is None else frames
-    start_frame = getattr(dataset, "start_frame", 0)
-    starts = [s.start_frame - start_frame - frames.start for s in player.model.segments
-              if frames.start < s.start_frame - start_frame < frames.stop]
-    if not starts or len(frames) < 2 or not cams:
+def evaluate_seams(result: dict, segment_starts) -> dict | None:
+    """seam_figures of an evaluate_images / evaluate_player `result` over consecutive frames, for a model
+    whose segments start at `segment_starts` (frames numbered as the rows' "frame"): each frame's PSNR
+    and temporal error are the means over the result's cameras (its "per_frame" rows). None unless the
+    rows cover consecutive frames holding a seam (two segments or more)."""
+    rows = result["per_frame"]
+    frames = sorted({r["frame"] for r in rows})
+    if len(frames) < 2 or frames != list(range(frames[0], frames[-1] + 1)):
         return None
-    psnrs, pairs = zip(*(frame_series(player, dataset, ci, frames) for ci in cams))
-    figures = seam_figures(np.mean(psnrs, axis=0), np.mean(pairs, axis=0), [0] + starts)
-    shift = lambda d: {frames.start + k: v for k, v in d.items()}  # noqa: E731  (back to dataset frames)
+    starts = [s - frames[0] for s in segment_starts if frames[0] < s <= frames[-1]]
+    if not starts:
+        return None
+    by_frame = {j: [r for r in rows if r["frame"] == j] for j in frames}
+    psnrs = [np.mean([r["psnr"] for r in by_frame[j]]) for j in frames]
+    pairs = [np.mean([r["temporal_error"] for r in by_frame[j]]) for j in frames[1:]]
+    figures = seam_figures(psnrs, pairs, [0] + starts)
+    shift = lambda d: {frames[0] + k: v for k, v in d.items()}  # noqa: E731  (back to video frames)
     return {**figures, "boundary": shift(figures["boundary"]), "seams": shift(figures["seams"])}

@@ -92,9 +92,9 @@ def main(argv=None) -> int:
         print(f"{PROG}: {why}", file=sys.stderr)
     try:
         result = evaluate_player(player, dataset, frames=frames, lpips=lpips, threshold=args.dynamic_threshold)
-        seams = evaluate_seams(player, dataset, frames=frames)
     except RenderError as e:
         return error(PROG, str(e))
+    seams = evaluate_seams(result, [s.start_frame for s in player.model.segments])
     size = Path(args.model).stat().st_size
     count = sum(s.count for s in player.model.segments)
     print(format_table(result, size, count))

@@ -161,12 +161,15 @@ def test_evaluate_seams_finds_the_pop_between_two_segments():
         j = int(round(t * 30.0))
         return data.image(0, j).astype(np.float64) + (0.1 if j >= 3 else 0.05)
 
-    player = SimpleNamespace(render=render, model=SimpleNamespace(segments=[SimpleNamespace(start_frame=0),
-                                                                            SimpleNamespace(start_frame=3)]))
-    seams = metrics.evaluate_seams(player, data)
+    player = SimpleNamespace(render=render, start_time=0.0, model=SimpleNamespace(segments=[SimpleNamespace(start_frame=0),
+                                                                                            SimpleNamespace(start_frame=3)]))
+    result = metrics.evaluate_player(player, data)
+    seams = metrics.evaluate_seams(result, [0, 3])
     assert seams["seams"] == {3: pytest.approx(0.05)}
     assert seams["interior_pair_error"] == pytest.approx(0.0, abs=1e-9)
     assert set(seams["boundary"]) == {0, 2, 3, 5}
     assert seams["interior_psnr"] == pytest.approx((26.0206 + 20.0) / 2, abs=1e-3)  # frames 1 and 4
     assert seams["worst_dip"] == pytest.approx(3.0103, abs=1e-3)
-    assert metrics.evaluate_seams(player, data, frames=range(0, 3)) is None  # one segment: no seam
+    assert [r["temporal_error"] for r in result["per_frame"]][0] is None  # no pair ends at the first frame
+    one = metrics.evaluate_player(player, data, frames=range(0, 3))
+    assert metrics.evaluate_seams(one, [0, 3]) is None  # frames of one segment: no seam
