@@ -31,7 +31,9 @@ from pathlib import Path
 
 import stg_train  # noqa: F401  (first: it configures OpenMP before torch loads)
 
+from stg_runtime.format import load
 from stg_runtime.player import Player
+from stg_train.convert.merge import merge_models
 from stg_train.config import TrainConfig
 from stg_train.data import load_n3v
 from stg_train.metrics import evaluate_player, evaluate_seams
@@ -53,6 +55,9 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0, help="training seed")
     ap.add_argument("--set", type=parse_setting, action="append", default=[], metavar="KEY=VALUE",
                     help="a TrainConfig field (VALUE as JSON, else a string)")
+    ap.add_argument("--crossfades", type=lambda v: [int(x) for x in v.split(",") if x], default=[],
+                    metavar="B,...", help="also evaluate the segments merged with these crossfade_frames "
+                                          "(each at most what the segments' context allows; 0: a hard cut)")
     ap.add_argument("--one-frame", action="store_true",
                     help="also train one-frame references at segment 0's first, middle and last frames")
     ap.add_argument("--data", default=None, help="scene folder (written once; default: a temp folder per size)")
@@ -72,14 +77,12 @@ def main() -> None:
           f"points, seed {args.seed}, settings {dict(args.set)}; training into {out}", flush=True)
     train(ds, out, config, quiet=True, segment_frames=args.segment_frames)
     player = Player(out / "model.stg", device="cpu")
-    rows = evaluate_player(player, ds)["per_frame"] + evaluate_player(player, novel)["per_frame"]
-    figures = evaluate_seams({"per_frame": rows}, [s.start_frame for s in player.model.segments])
-
-    print(f"interior mean {figures['interior_psnr']:.2f} dB; boundary frames: " + ", ".join(
-        f"{f}: {p:.2f} dB ({p - figures['interior_psnr']:+.2f})" for f, p in figures["boundary"].items()))
-    print(f"worst dip {figures['worst_dip']:.2f} dB")
-    print(f"temporal error inside segments {figures['interior_pair_error']:.4f}; at the seams: " + ", ".join(
-        f"{s - 1}->{s}: {e:.4f} ({e / figures['interior_pair_error']:.2f}x)" for s, e in figures["seams"].items()))
+    rows, figures = seam_report(player, ds, novel, "as trained")
+    by_crossfade = {}
+    for fade in args.crossfades:
+        segments = [load(f) for f in sorted((out / "segments").glob("*/model.stg"))]
+        merged = Player(merge_models(segments, crossfade=fade), device="cpu")
+        by_crossfade[fade] = seam_report(merged, ds, novel, f"crossfade {fade} (at most the context allows)")[1]
     one_frame = {}
     if args.one_frame:
         first = player.model.segments[0]
@@ -93,7 +96,23 @@ def main() -> None:
                   f"{ref['dynamic_psnr']:.2f} dB: {ref['dynamic_psnr'] - got['dynamic_psnr']:.2f} behind", flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps({"settings": {**vars(args), "set": dict(args.set)},
-                                               "per_frame": rows, "figures": figures, "one_frame": one_frame}, indent=1) + "\n")
+                                               "per_frame": rows, "figures": figures, "one_frame": one_frame,
+                                               "by_crossfade": by_crossfade}, indent=1) + "\n")
+
+
+def seam_report(player, ds, novel, label: str):
+    """(per-frame rows, evaluate_seams figures) of `player` over the held-out camera and the novel
+    views, printed under `label`."""
+    rows = evaluate_player(player, ds)["per_frame"] + evaluate_player(player, novel)["per_frame"]
+    figures = evaluate_seams({"per_frame": rows}, [s.start_frame for s in player.model.segments])
+    fades = [s.crossfade_frames for s in player.model.segments[1:]]
+    print(f"{label} (crossfades {fades}): interior mean {figures['interior_psnr']:.2f} dB; boundary frames: "
+          + ", ".join(f"{f}: {p:.2f} dB ({p - figures['interior_psnr']:+.2f})" for f, p in figures["boundary"].items()))
+    print(f"  worst dip {figures['worst_dip']:.2f} dB; temporal error inside segments "
+          f"{figures['interior_pair_error']:.4f}; at the seams: " + ", ".join(
+              f"{s - 1}->{s}: {e:.4f} ({e / figures['interior_pair_error']:.2f}x)" for s, e in figures["seams"].items()),
+          flush=True)
+    return rows, figures
 
 
 if __name__ == "__main__":

@@ -22,7 +22,8 @@ from .camera import Camera
 from .model import ACTIVATIONS, ATTRIBUTES, FEATURE_CHANNELS, KINDS, Model, Segment, allowed_channels, attribute_shape
 
 MAGIC = b"\x89STG\r\n\x1a\n"
-VERSION = (1, 2)  # the version this module reads and writes; see written_version()
+VERSION = (1, 3)  # the version this module reads and writes; see written_version()
+MAX_SPAN = 2 ** 24  # the largest context_frames / crossfade_frames value a reader accepts (1.3)
 PREFIX = struct.Struct("<8sHHQ")  # magic, major, minor, header length
 MAX_HEADER = 64 << 20
 ALIGN = 8
@@ -137,10 +138,13 @@ def error_bound(array, encoding: str):
 # -- writing ------------------------------------------------------------------------------------
 
 
-def written_version(kind: str, camera_models=()) -> tuple[int, int]:
-    """The version a writer puts in a file of `kind` whose cameras have `camera_models`: the lowest that
-    holds it, 1.2 with a camera other than a pinhole (added in 1.2), 1.1 for "sh" (added in 1.1), else
-    1.0, which every 1.x reader opens."""
+def written_version(kind: str, camera_models=(), segments=()) -> tuple[int, int]:
+    """The version a writer puts in a file of `kind` whose cameras have `camera_models` and whose
+    `segments` (Segment objects) are these: the lowest that holds it, 1.3 with a segment's context or
+    crossfade (added in 1.3), 1.2 with a camera other than a pinhole (added in 1.2), 1.1 for "sh"
+    (added in 1.1), else 1.0, which every 1.x reader opens."""
+    if any(s.crossfade_frames or any(s.context_frames) for s in segments):
+        return (1, 3)
     if any(m != "pinhole" for m in camera_models):
         return (1, 2)
     return (1, 1) if kind == "sh" else (1, 0)
@@ -179,9 +183,14 @@ def dumps(model: Model, encodings: dict[str, str] | None = None, codec: str = "z
                                 "data": blob(stored.tobytes(), codec)}
         decoder = None if seg.decoder is None else {"activation": seg.activation,
                                                     "data": blob(bytes(seg.decoder), "raw")}
-        segments.append({"start_frame": seg.start_frame, "num_frames": seg.num_frames, "count": seg.count,
-                         "position_degree": seg.position_degree, "rotation_degree": seg.rotation_degree,
-                         "attributes": attributes, "decoder": decoder})
+        entry = {"start_frame": seg.start_frame, "num_frames": seg.num_frames, "count": seg.count,
+                 "position_degree": seg.position_degree, "rotation_degree": seg.rotation_degree,
+                 "attributes": attributes, "decoder": decoder}
+        if any(seg.context_frames):
+            entry["context_frames"] = list(seg.context_frames)
+        if seg.crossfade_frames:
+            entry["crossfade_frames"] = seg.crossfade_frames
+        segments.append(entry)
     bounds = None
     if model.bounds is not None:
         lo, hi = np.asarray(model.bounds, dtype=np.float64).reshape(2, 3).tolist()
@@ -193,7 +202,7 @@ def dumps(model: Model, encodings: dict[str, str] | None = None, codec: str = "z
               "cameras": [c.to_dict() for c in model.cameras], "bounds": bounds, "provenance": provenance}
     text = _json(header).encode("utf-8")
     text += b" " * (-(PREFIX.size + len(text)) % ALIGN)  # the data section starts 8-byte aligned
-    version = written_version(model.kind, [c.model for c in model.cameras])
+    version = written_version(model.kind, [c.model for c in model.cameras], model.segments)
     body = PREFIX.pack(MAGIC, *version, len(text)) + text + bytes(data)
     return body + hashlib.sha256(body).digest()
 
@@ -381,8 +390,16 @@ def _segment(s: dict, where: str, layout: tuple, section: memoryview) -> Segment
             decoder = onnx_mlp.canonical(decoder)  # the MLP family only (formats/stg-v1.md, section 2)
         except ValueError as e:
             raise ValueError(f"{where}, decoder: {e}") from e
+    context = s.get("context_frames", [0, 0])
+    if (not isinstance(context, list) or len(context) != 2
+            or not all(isinstance(c, int) and not isinstance(c, bool) and 0 <= c <= MAX_SPAN for c in context)):
+        raise ValueError(f"{where}: context_frames must be a list of two integers in [0, {MAX_SPAN}]")
+    crossfade = s.get("crossfade_frames", 0)
+    if isinstance(crossfade, bool) or not isinstance(crossfade, int) or not 0 <= crossfade <= MAX_SPAN:
+        raise ValueError(f"{where}: crossfade_frames must be an integer in [0, {MAX_SPAN}]")
     try:
-        return Segment(start, frames, decoder=decoder, activation=activation, **arrays)
+        return Segment(start, frames, decoder=decoder, activation=activation, context_frames=tuple(context),
+                       crossfade_frames=crossfade, **arrays)
     except ValueError as e:
         raise ValueError(f"{where}: {e}") from e
 

@@ -4,7 +4,7 @@ Shapes and meanings are those of formats/stg-v1.md, section 2. Arrays are float3
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -65,6 +65,10 @@ class Segment:
     decoder: ONNX bytes of a decoder graph (full models; formats/stg-v1.md, the MLP family) or None,
     kept in canonical form (stg_runtime.onnx_mlp.canonical: parsed and re-serialised, so that nothing but
     a valid decoder can ever reach onnxruntime); activation: how the decoder output becomes rgb.
+    context_frames: (before, after), how many frames before its first and after its last frame the
+    segment was also fitted to (its renders there are as good as inside; format 1.3). crossfade_frames:
+    over how many frames players blend the previous segment into this one around their boundary (0: a
+    hard cut; formats/stg-v1.md, "Segments and crossfades").
     """
 
     start_frame: int
@@ -78,11 +82,15 @@ class Segment:
     features: np.ndarray
     decoder: bytes | None = None
     activation: str = "sigmoid"
+    context_frames: tuple[int, int] = (0, 0)
+    crossfade_frames: int = 0
 
     def __post_init__(self):
         for name in ATTRIBUTES:
             setattr(self, name, np.ascontiguousarray(getattr(self, name), dtype=np.float32))
         self.start_frame, self.num_frames = int(self.start_frame), int(self.num_frames)
+        self.context_frames = tuple(int(c) for c in self.context_frames)
+        self.crossfade_frames = int(self.crossfade_frames)
         if self.decoder is not None:
             try:
                 self.decoder = canonical(bytes(self.decoder))
@@ -130,11 +138,35 @@ class Segment:
                                  f"with {self.channels} features it must map {self.channels + 3} -> 3")
         if self.activation not in ACTIVATIONS:
             raise ValueError(f"segment: activation must be one of {ACTIVATIONS}, got {self.activation!r}")
+        if len(self.context_frames) != 2 or min(self.context_frames) < 0:
+            raise ValueError(f"segment: context_frames must be two counts >= 0, got {self.context_frames}")
+        if self.crossfade_frames < 0:
+            raise ValueError(f"segment: crossfade_frames must be >= 0, got {self.crossfade_frames}")
 
     def subset(self, mask_or_index) -> "Segment":
         """A copy keeping only the Gaussians selected by a boolean mask or an index array."""
-        kept = {name: arr[mask_or_index] for name, arr in self.arrays().items()}
-        return Segment(self.start_frame, self.num_frames, decoder=self.decoder, activation=self.activation, **kept)
+        return replace(self, **{name: arr[mask_or_index] for name, arr in self.arrays().items()})
+
+    def retimed(self, start_frame: int, num_frames: int) -> "Segment":
+        """The same Gaussians with normalised time over frames [start_frame, start_frame + num_frames)
+        instead of this segment's own: every render at a video time is unchanged (up to float32
+        rounding). With a = num_frames / self.num_frames and tau' the new normalised time,
+        tau - t_center = a (tau' - t_center'), so t_center' = (t_center * n + start - start') / n',
+        t_scale' = a^2 t_scale and the coefficients of degree k (position, rotation; the full model's
+        time features, degree 1) are multiplied by a^k. context_frames follow the frames they name."""
+        a = num_frames / self.num_frames
+        arrays = {k: v.astype(np.float64) for k, v in self.arrays().items()}
+        arrays["t_center"] = (arrays["t_center"] * self.num_frames + self.start_frame - start_frame) / num_frames
+        arrays["t_scale"] = arrays["t_scale"] * a * a
+        arrays["position"] = arrays["position"] * a ** np.arange(self.position_degree + 1)[:, None]
+        arrays["rotation"] = arrays["rotation"] * a ** np.arange(self.rotation_degree + 1)[:, None]
+        if time_channels(self):
+            arrays["features"][:, -TIME_CHANNELS:] *= a
+        first = self.start_frame - self.context_frames[0]
+        last = self.start_frame + self.num_frames + self.context_frames[1]
+        context = (max(0, start_frame - first), max(0, last - start_frame - num_frames))
+        return replace(self, start_frame=start_frame, num_frames=num_frames, context_frames=context,
+                       **{k: v.astype(np.float32) for k, v in arrays.items()})
 
 
 @dataclass
@@ -189,12 +221,41 @@ class Model:
                 raise ValueError(f"model: segment {i}: a {self.kind} model {'needs' if self.kind == 'full' else 'has no'} decoder")
             if i and seg.start_frame != self.segments[i - 1].start_frame + self.segments[i - 1].num_frames:
                 raise ValueError(f"model: segment {i} starts at frame {seg.start_frame}, not right after segment {i - 1}")
+        if self.segments[0].crossfade_frames:
+            raise ValueError("model: segment 0 has crossfade_frames, but no segment before it to fade from")
+        for i, seg in enumerate(self.segments):
+            fade_out = self.segments[i + 1].crossfade_frames if i + 1 < len(self.segments) else 0
+            if seg.crossfade_frames + fade_out > 2 * seg.num_frames:
+                raise ValueError(f"model: segment {i} ({seg.num_frames} frames) is too short for its crossfades "
+                                 f"({seg.crossfade_frames} in, {fade_out} out): half of each must fit in it")
 
     def segment_at(self, t: float) -> tuple[Segment, float]:
-        """The segment showing time t (seconds since frame 0) and the normalised time tau within it."""
+        """The segment whose frames hold time t (seconds since frame 0) and the normalised time tau
+        within it (where a crossfade blends two segments, the one holding t: see segments_at)."""
         frame = int(np.floor(t * self.fps + 1e-9))
         for seg in self.segments:
             if frame < seg.start_frame + seg.num_frames:
                 break
-        start = seg.start_frame / self.fps
-        return seg, (t - start) / (seg.num_frames / self.fps)
+        return seg, self.tau(seg, t)
+
+    def tau(self, segment: Segment, t: float) -> float:
+        """Normalised time of `segment` at t seconds (outside [0, 1] beyond its frames)."""
+        return (t - segment.start_frame / self.fps) / (segment.num_frames / self.fps)
+
+    def segments_at(self, t: float) -> list[tuple[Segment, float, float]]:
+        """What a player shows at time t: [(segment, tau, weight)], one entry of weight 1, or two (the
+        earlier segment first) inside a crossfade, whose weights add up to 1; the image is the weighted
+        sum of their renders. A crossfade of b frames into segment B starting at frame s spans
+        x = t * fps in [s - 1/2 - b/2, s - 1/2 + b/2], with B's weight rising linearly from 0 to 1
+        (formats/stg-v1.md, "Segments and crossfades")."""
+        seg, tau = self.segment_at(t)
+        i = next(k for k, s in enumerate(self.segments) if s is seg)
+        x = t * self.fps
+        for later in (i, i + 1):  # the fade into seg, and the fade out of it
+            if 0 < later < len(self.segments) and self.segments[later].crossfade_frames:
+                b = self.segments[later].crossfade_frames
+                w = (x - (self.segments[later].start_frame - 0.5 - 0.5 * b)) / b
+                if 0.0 < w < 1.0:
+                    a_seg, b_seg = self.segments[later - 1], self.segments[later]
+                    return [(a_seg, self.tau(a_seg, t), 1.0 - w), (b_seg, self.tau(b_seg, t), w)]
+        return [(seg, tau, 1.0)]

@@ -123,9 +123,12 @@ class Player:
         end = self.start_time + self.duration
         if not (self.start_time - 1e-9 <= t <= end + 1e-9):
             raise ValueError(f"t = {t} s is outside the model's time span [{self.start_time}, {end}] s")
-        segment, tau = self.model.segment_at(t)
+        parts = self.model.segments_at(t)
         try:
-            rendered = self._render(segment, tau, camera, out)
+            if len(parts) == 1:
+                rendered = self._render(parts[0][0], parts[0][1], camera, out)
+            else:
+                rendered = self._crossfade(parts, camera, out)
         except Exception as e:  # noqa: BLE001 - any failure of a render is reported as one, naming the file
             raise RenderError(f"{self.name}: rendering t = {t} s failed ({type(e).__name__}: {e})") from e
         if out == "host" and not np.all(np.isfinite(rendered.rgb)):
@@ -146,6 +149,24 @@ class Player:
         else:
             rgb = self._decoder(segment)(features, camera)
         return Rendered(np.ascontiguousarray(rgb, dtype=np.float32), features, alpha, depth)
+
+    def _crossfade(self, parts, camera: Camera, out: str) -> Rendered:
+        """Inside a crossfade (Model.segments_at): each of rgb, features, alpha and depth is the weighted
+        sum of the two segments' renders (on the host; with out="device" the sums are copied into the
+        player's buffers)."""
+        (a_seg, a_tau, a_w), (b_seg, b_tau, b_w) = parts
+        first = self._render(a_seg, a_tau, camera, "host")
+        second = self._render(b_seg, b_tau, camera, "host")
+        blended = Rendered(*(np.ascontiguousarray(a_w * x + b_w * y, dtype=np.float32)
+                             for x, y in zip(first, second)))
+        if out == "host":
+            return blended
+        ws = self._workspace
+        buffers = [ws.buffer(f"crossfade {name}", a.shape, np.float32).device
+                   for name, a in zip(Rendered._fields, blended)]
+        for buffer, host in zip(buffers, blended):
+            buffer.copy_to_device(host)
+        return Rendered(*buffers)
 
     def _render_cuda(self, segment: Segment, tau: float, camera: Camera, out: str) -> Rendered:
         """Time evaluation, splatting and colour with the numba.cuda kernels, on segments uploaded once.

@@ -47,7 +47,10 @@ class TrainConfig:
     the loss only (stg_train.appearance); pose_refine: a learned rigid correction of each training
     camera's pose (stg_train.pose_refine); camera_learning_rates: overrides of their rates (keys
     "matrix", "bias", "vignetting" of appearance.APPEARANCE_LR, "rotation", "translation" of
-    pose_refine.POSE_LR). docs/training.md says which defaults are
+    pose_refine.POSE_LR); segment_context: for a video trained in segments, how many neighbouring
+    frames on each side a segment is also fitted to (as context: it shows only its own frames, and the
+    players crossfade over the seam where both neighbours have context; stg_train.segments).
+    docs/training.md says which defaults are
     the reference's and which are ours, with the measurements behind them.
     """
 
@@ -77,6 +80,7 @@ class TrainConfig:
     appearance_vignetting: bool = True
     pose_refine: bool = False
     camera_learning_rates: dict = field(default_factory=dict)
+    segment_context: int = 0
 
     def for_dataset(self, dataset) -> "TrainConfig":
         """These settings with the choices left open made: init "auto" (or None) -> default_method(dataset),

@@ -70,14 +70,20 @@ class ExportReport:
 
 
 def to_model(params: STGParams, cameras: list[Camera], fps: float, num_frames: int, bounds=None,
-             provenance: dict | None = None, start_frame: int = 0) -> Model:
-    """A one-segment runtime Model of `params` covering frames [start_frame, start_frame + num_frames).
+             provenance: dict | None = None, start_frame: int = 0, context: tuple[int, int] = (0, 0)) -> Model:
+    """A one-segment runtime Model of `params` trained on frames [start_frame, start_frame + num_frames).
+    context (before, after): that many of those frames at either end were context (Dataset.context_frames):
+    the segment then shows the frames between them, its time normalised over those (Segment.retimed),
+    and records the context.
 
     bounds: ((3,), (3,)) world box; default: the box of the Gaussians' centres. provenance: stored as is
     (tool, version, settings)."""
     arrays = to_file_arrays({k: v.detach().cpu().numpy() for k, v in params.raw.items()})
     decoder = None if params.decoder is None else mlp_to_onnx(params.decoder.weights())
     segment = Segment(start_frame, num_frames, decoder=decoder, activation="sigmoid", **arrays)
+    before, after = context
+    if before or after:
+        segment = segment.retimed(start_frame + before, num_frames - before - after)
     if bounds is None:
         xyz = arrays["position"][:, 0]
         bounds = (xyz.min(0).tolist(), xyz.max(0).tolist()) if len(xyz) else ([0.0] * 3, [0.0] * 3)
@@ -100,12 +106,14 @@ def trainer_render(params: STGParams, camera: Camera, tau: float) -> np.ndarray:
 
 def compare_with_runtime(params: STGParams, player: Player, cameras: list[Camera], frames) -> GoldenDiff:
     """The worst GoldenDiff of trainer rgb vs runtime rgb over every camera x frame j of the player's
-    first segment (trainer at tau = j / num_frames, player at t = (start_frame + j) / fps)."""
+    first segment (player at t = (start_frame + j) / fps; the trainer, whose time spans the segment's
+    frames and its context (before, after), at tau = (before + j) / (before + num_frames + after))."""
     worst = GoldenDiff(0.0, 0.0)
     seg = player.model.segments[0]
+    before, after = seg.context_frames
     for cam in cameras:
         for j in frames:
-            ours = trainer_render(params, cam, j / seg.num_frames)
+            ours = trainer_render(params, cam, (before + j) / (before + seg.num_frames + after))
             theirs = player.render(cam, (seg.start_frame + j) / player.fps)
             worst = worst.worst(GoldenDiff.of(ours, theirs))
     return worst
@@ -113,23 +121,25 @@ def compare_with_runtime(params: STGParams, player: Player, cameras: list[Camera
 
 def export(params: STGParams, path, cameras: list[Camera], fps: float, num_frames: int,
            check_cameras: list[Camera] | None = None, check_frames=None, bounds=None,
-           provenance: dict | None = None, start_frame: int = 0) -> ExportReport:
-    """Write `params` to `path` (.stg, float32 attributes) as one segment covering frames
-    [start_frame, start_frame + num_frames) of the video, then compare the trainer's and the runtime's
-    renders of check_cameras (default: none) at check_frames, counted within the segment (default: its
-    first, middle and last frame). Raises ExportMismatch (the file stays, for inspection) when they
-    differ beyond the golden tolerance."""
+           provenance: dict | None = None, start_frame: int = 0, context: tuple[int, int] = (0, 0)) -> ExportReport:
+    """Write `params` to `path` (.stg, float32 attributes) as one segment trained on frames
+    [start_frame, start_frame + num_frames) of the video, of which the first and last `context` frames
+    were context (to_model), then compare the trainer's and the runtime's renders of check_cameras
+    (default: none) at check_frames, counted within the segment's shown frames (default: its first,
+    middle and last frame). Raises ExportMismatch (the file stays, for inspection) when they differ
+    beyond the golden tolerance."""
     path = Path(path)
     if path.parent and not path.parent.exists():
         os.makedirs(path.parent, exist_ok=True)
-    model = to_model(params, cameras, fps, num_frames, bounds, provenance, start_frame=start_frame)
+    model = to_model(params, cameras, fps, num_frames, bounds, provenance, start_frame=start_frame, context=context)
     stg_format.save(model, path)
     size = path.stat().st_size
     if not check_cameras:
         return ExportReport(path, size, None, [])
-    frames = sorted({0, num_frames // 2, num_frames - 1}) if check_frames is None else list(check_frames)
+    shown = model.segments[0]
+    frames = sorted({0, shown.num_frames // 2, shown.num_frames - 1}) if check_frames is None else list(check_frames)
     worst = compare_with_runtime(params, Player(path, device="cpu"), check_cameras, frames)
-    checked = [(c.name, start_frame + j) for c in check_cameras for j in frames]
+    checked = [(c.name, shown.start_frame + j) for c in check_cameras for j in frames]
     if not worst.ok:
         raise ExportMismatch(f"{path}: the runtime's render differs from the trainer's (max abs rgb "
                              f"{worst.max_abs:.3g}, {100 * worst.fraction_over:.3g}% of values over "
@@ -150,7 +160,8 @@ def export_trainer(trainer, path, check: bool = True) -> ExportReport:
                       data=None if ds.path is None else str(ds.path))
     check_cameras = [ds.cameras[i] for i in ds.test_cameras] if check else None
     return export(trainer.params, path, trainer.refined_cameras(), ds.fps, ds.num_frames, check_cameras=check_cameras,
-                  bounds=ds.scene_bounds, provenance=prov, start_frame=getattr(ds, "start_frame", 0))
+                  bounds=ds.scene_bounds, provenance=prov, start_frame=getattr(ds, "start_frame", 0),
+                  context=getattr(ds, "context_frames", (0, 0)))
 
 
 def trainer_model(trainer) -> Model:
@@ -160,4 +171,4 @@ def trainer_model(trainer) -> Model:
     ds = trainer.dataset
     with torch.no_grad():
         return to_model(trainer.params, trainer.refined_cameras(), ds.fps, ds.num_frames, bounds=ds.scene_bounds,
-                        start_frame=getattr(ds, "start_frame", 0))
+                        start_frame=getattr(ds, "start_frame", 0), context=getattr(ds, "context_frames", (0, 0)))

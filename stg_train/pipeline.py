@@ -43,8 +43,8 @@ from .convert.merge import merge_files
 from .data import DataError, load_dataset
 from .export import export_trainer
 from .metrics import evaluate_player, heldout, lpips_models
-from .segments import (PLAN_NAME, SegmentError, check_plan, finished, missing_message, plan_segments, pooled, segment_dir,
-                       worst_check)
+from .segments import (PLAN_NAME, SegmentError, cache_chunks, check_plan, finished, missing_message, plan_segments, pooled,
+                       segment_dir, segment_view, worst_check)
 from .synthetic import SyntheticScene, write_n3v
 from .trainer import Trainer, TrainConfig
 
@@ -288,7 +288,7 @@ def train(dataset, out, config: TrainConfig, resume: bool = False, quiet: bool =
     if trainer.step < trainer.config.iterations:
         _run_training(trainer, ckpt, quiet, callback, stop_on_signal)
     report = export_trainer(trainer, out / "model.stg", check=check)
-    result = evaluate_player(Player(report.path, device="cpu"), dataset, lpips=lpips)
+    result = evaluate_player(Player(report.path, device="cpu"), dataset.shown(), lpips=lpips)
     metrics = {"heldout": heldout(result), "iterations": trainer.step, "train_seconds": trainer.seconds,
                "gaussians": trainer.params.count, "file_bytes": report.bytes,
                "export_check": None if report.diff is None else report.diff._asdict(),
@@ -342,13 +342,14 @@ def train_segments(dataset, out, config: TrainConfig, segment_frames: int, indic
     cut differently, DataError for bad data (from the training runs).
     """
     out = Path(out)
-    dataset, plan, todo = prepare_segments(dataset, out, segment_frames, indices, resume, quiet)
+    dataset, plan, todo = prepare_segments(dataset, out, segment_frames, indices, resume, quiet,
+                                                   config.segment_context)
     lpips = _lpips(quiet)
     for i in todo:
         span, folder = plan[i], segment_dir(out, i, len(plan))
         if not quiet:
             print(f"segment {i} of 0-{len(plan) - 1} ({span.frames()}) -> {folder}", file=sys.stderr)
-        train(dataset.frame_range(span.start, span.count), folder, config, resume, quiet, check, lpips=lpips,
+        train(segment_view(dataset, span, config.segment_context), folder, config, resume, quiet, check, lpips=lpips,
               callback=callback, given=given, stop_on_signal=stop_on_signal)
     return finish_segments(dataset, out, config, segment_frames, quiet, lpips)
 
@@ -363,9 +364,9 @@ def _check_indices(chosen, plan, num_frames: int, segment_frames: int) -> None:
 
 
 def prepare_segments(dataset, out: Path, segment_frames: int, indices: Sequence[int] | None, resume: bool,
-                     quiet: bool = False):
-    """The segments of a run before any is trained: (dataset with its frame cache cut at the segments,
-    plan, indices to train). Checks the indices, OUT (creating it) and OUT's plan (SegmentError), removes leftovers of
+                     quiet: bool = False, context: int = 0):
+    """The segments of a run before any is trained: (dataset with its frame cache cut at the segments
+    and their `context` frames (segments.cache_chunks), plan, indices to train). Checks the indices, OUT (creating it) and OUT's plan (SegmentError), removes leftovers of
     killed writes, and without `resume` the marks of finished segments of the chosen ones (so they
     are trained afresh); with it, says which finished segments are kept."""
     plan = plan_segments(dataset.num_frames, segment_frames)
@@ -389,7 +390,7 @@ def prepare_segments(dataset, out: Path, segment_frames: int, indices: Sequence[
             for name in ("metrics.json", "model.stg"):  # the marks of a finished segment
                 (folder / name).unlink(missing_ok=True)
         todo.append(i)
-    return dataset.chunked([(s.start, s.count) for s in plan]), plan, todo
+    return dataset.chunked(cache_chunks(plan, context)), plan, todo
 
 
 def finish_segments(dataset, out: Path, config: TrainConfig, segment_frames: int, quiet: bool = False,

@@ -56,6 +56,31 @@ def plan_segments(num_frames: int, segment_frames: int) -> list[Span]:
     return [Span(i, s, e - s) for i, (s, e) in enumerate(zip(starts, ends))]
 
 
+def context_of(span: Span, num_frames: int, frames: int) -> tuple[int, int]:
+    """(before, after): the context frames of `span` in a num_frames-frame video, up to `frames` on
+    each side (fewer where the video starts or ends)."""
+    return min(frames, span.start), min(frames, num_frames - span.start - span.count)
+
+
+def segment_view(dataset, span: Span, context: int):
+    """The dataset view a segment is trained on: its frames plus up to `context` neighbouring frames on
+    each side (Dataset.frame_range with context)."""
+    return dataset.frame_range(span.start, span.count, context_of(span, dataset.num_frames, context))
+
+
+def cache_chunks(plan: Sequence[Span], context: int) -> list[tuple[int, int]]:
+    """Frame-cache chunks ((start, count), consecutive) for training `plan` with `context` frames: each
+    segment's frames, with the `context` frames at either inner end cut off as chunks of their own, so
+    that a segment's view decodes its own frames and only the small chunks of its neighbours' ends."""
+    cuts = set()
+    for s in plan:
+        cuts.update((s.start, s.start + s.count))
+        if context and 2 * context < s.count:
+            cuts.update((s.start + context, s.start + s.count - context))
+    cuts = sorted(cuts)
+    return [(a, b - a) for a, b in zip(cuts, cuts[1:])]
+
+
 def parse_segment_list(text: str) -> list[int]:
     """"2,3" / "0-2" / "0-2,5" -> sorted distinct segment indices (counted from 0). Raises ValueError."""
     out = set()

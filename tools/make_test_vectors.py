@@ -8,6 +8,7 @@ against an independent transcription of formats/stg-v1.md. Usage: python tools/m
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -60,9 +61,10 @@ def _numpy_decoder(features, camera, weights, activation):
     return np.clip(rgb, 0, 1).reshape(h, w, 3)
 
 
-def expected_render(model: Model, camera: Camera, t: float, weights) -> np.ndarray:
-    """(H, W, 3) float64 render of `model` at t seconds by the reference path."""
-    seg, tau = model.segment_at(t)
+def _segment_render(model: Model, seg: Segment, camera: Camera, t: float, weights) -> np.ndarray:
+    """(H, W, 3) float64 render of segment `seg` of `model` at t seconds (at its own tau, inside or
+    outside [0, 1]); weights: the decoder's, or {start_frame: weights} per segment."""
+    tau = (t - seg.start_frame / model.fps) / (seg.num_frames / model.fps)
     g = evaluate_oracle(seg, tau)
     colours = g["features"]
     if model.kind == "sh":  # per-Gaussian colour for this view, before splatting
@@ -70,7 +72,25 @@ def expected_render(model: Model, camera: Camera, t: float, weights) -> np.ndarr
     feats, _, _ = rasterize_oracle(g["means"], g["quats"], g["scales"], g["opacities"], colours, camera)
     if model.kind in ("lite", "sh"):
         return np.clip(feats[..., :3], 0, 1)
-    return _numpy_decoder(feats, camera, weights, seg.activation)
+    return _numpy_decoder(feats, camera, weights[seg.start_frame] if isinstance(weights, dict) else weights,
+                          seg.activation)
+
+
+def expected_render(model: Model, camera: Camera, t: float, weights) -> np.ndarray:
+    """(H, W, 3) float64 render of `model` at t seconds by the reference path (formats/stg-v1.md,
+    section 2: the segment holding frame floor(t fps), or inside a crossfade of b frames into segment B
+    starting at frame s, (1 - w) A + w B with w = (t fps - (s - 1/2 - b/2)) / b)."""
+    frame = int(np.floor(t * model.fps + 1e-9))
+    index = next((i for i, s in enumerate(model.segments) if frame < s.start_frame + s.num_frames),
+                 len(model.segments) - 1)
+    for later in (index, index + 1):
+        if 0 < later < len(model.segments) and model.segments[later].crossfade_frames:
+            a, b = model.segments[later - 1], model.segments[later]
+            w = (t * model.fps - (b.start_frame - 0.5 - 0.5 * b.crossfade_frames)) / b.crossfade_frames
+            if 0 < w < 1:
+                return ((1 - w) * _segment_render(model, a, camera, t, weights)
+                        + w * _segment_render(model, b, camera, t, weights))
+    return _segment_render(model, model.segments[index], camera, t, weights)
 
 
 def main() -> None:
@@ -87,16 +107,26 @@ def main() -> None:
                bounds=((-2, -2, 2), (2, 2, 6)), provenance={"tool": "tools/make_test_vectors.py"})
     fisheye = Model("full", FPS, full.segments, cameras=[_fisheye_camera()], bounds=full.bounds,
                     provenance=full.provenance)
-    vectors = [("lite", lite, {}), ("full", full, {}), ("full_quantized", full, quantized), ("sh", sh, {}),
-               ("full_fisheye", fisheye, {})]
-    times = [0.0, 0.25, 0.62, 0.95]
+    # (1.3) two full segments with their own decoders, each fitted 2 frames beyond the seam at frame 5,
+    # crossfaded over 4 frames (3, 4, 5, 6 blended at B weights 1/8, 3/8, 5/8, 7/8)
+    fade_rng = np.random.default_rng(2027)
+    fade_weights = {start: [0.5 * fade_rng.standard_normal((6, 12)).astype(np.float32),
+                            0.5 * fade_rng.standard_normal((3, 6)).astype(np.float32)] for start in (0, 5)}
+    first, second = (_segment(fade_rng, start, 5, "full", fade_weights[start]) for start in (0, 5))
+    crossfade = Model("full", FPS, [replace(first, context_frames=(0, 2)),
+                                    replace(second, context_frames=(2, 0), crossfade_frames=4)],
+                      cameras=[cam], bounds=full.bounds, provenance=full.provenance)
+    vectors = [("lite", lite, {}, weights), ("full", full, {}, weights), ("full_quantized", full, quantized, weights),
+               ("sh", sh, {}, weights), ("full_fisheye", fisheye, {}, weights),
+               ("full_crossfade", crossfade, {}, fade_weights)]
     index = {}
-    for name, model, encodings in vectors:
+    for name, model, encodings, model_weights in vectors:
+        times = [0.0, 0.3, 0.45, 0.62, 0.95] if name == "full_crossfade" else [0.0, 0.25, 0.62, 0.95]
         path = OUT / f"{name}.stg"
         stg_format.save(model, path, encodings=encodings)
         stored = stg_format.load(path)  # render what the file holds (quantized values included)
         camera = stored.cameras[0]
-        renders = np.stack([expected_render(stored, camera, t, weights) for t in times]).astype(np.float32)
+        renders = np.stack([expected_render(stored, camera, t, model_weights) for t in times]).astype(np.float32)
         np.savez_compressed(OUT / f"{name}.expected.npz", times=np.array(times), camera=np.array(0), rgb=renders)
         index[name] = {"file": path.name, "encodings": encodings or "f32", "segments": len(model.segments),
                        "expected": f"{name}.expected.npz"}

@@ -2,7 +2,9 @@
 
 Segments trained separately (`stg-train --segments ...`, on one machine or several) are independent
 models, so merging is concatenation: every input's segments, sorted by start_frame, must be
-consecutive without gaps or overlaps, and the inputs must share kind and fps. The merged file keeps the
+consecutive without gaps or overlaps, and the inputs must share kind and fps. Where two neighbouring
+segments were both fitted to frames beyond the seam (context_frames, TrainConfig.segment_context), the
+merged file crossfades them over the seam (seam_crossfade). The merged file keeps the
 inputs' attribute encodings where they all agree (one encoding per attribute for the whole file;
 re-encoding a u8 / u16 attribute with its own encoding moves values by at most ~1% of a quantization
 step) and stores float32 otherwise; cameras are the union of the inputs' cameras, bounds the union of
@@ -12,6 +14,7 @@ from __future__ import annotations
 
 import json
 import os
+from dataclasses import replace
 from typing import Sequence
 
 import numpy as np
@@ -19,7 +22,7 @@ import numpy as np
 import stg_runtime
 from stg_runtime import format as stg_format
 from stg_runtime.format import FormatError
-from stg_runtime.model import ATTRIBUTES, Model
+from stg_runtime.model import ATTRIBUTES, Model, Segment
 
 TOOL = "stg-convert merge"
 
@@ -32,12 +35,24 @@ def _span(model: Model) -> tuple[int, int]:
     return model.start_frame, model.start_frame + model.num_frames
 
 
-def merge_models(models: Sequence[Model], names: Sequence[str] | None = None) -> Model:
-    """One Model holding the segments of `models` in time order.
+def seam_crossfade(before: Segment, after: Segment, crossfade: int | None = None) -> int:
+    """The crossfade_frames of the seam between consecutive segments `before` and `after`: at most what
+    their context allows (the window reaches b / 2 frames into each neighbour, so b <= 2 x the smaller
+    of before's context after it and after's context before it) and at most either one's frame count.
+    crossfade None: the context frames both have (b = that smaller context: the window stays in the
+    inner half of the context); 0: a hard cut."""
+    shared = min(before.context_frames[1], after.context_frames[0])
+    wanted = shared if crossfade is None else min(int(crossfade), 2 * shared)
+    return max(0, min(wanted, before.num_frames, after.num_frames))
+
+
+def merge_models(models: Sequence[Model], names: Sequence[str] | None = None, crossfade: int | None = None) -> Model:
+    """One Model holding the segments of `models` in time order, every seam crossfaded as far as its
+    segments' context allows (seam_crossfade; `crossfade` as there).
 
     names: one label per model for messages and provenance (default "input 0", "input 1", ...).
     Raises ValueError naming the inputs (and frames) when kinds or fps differ, or when the segments,
-    sorted by start_frame, leave a gap or overlap. Segments are shared with the inputs, not copied.
+    sorted by start_frame, leave a gap or overlap. Segments share their arrays with the inputs.
     """
     models = list(models)
     names = [f"input {i}" for i in range(len(models))] if names is None else [str(n) for n in names]
@@ -78,8 +93,11 @@ def merge_models(models: Sequence[Model], names: Sequence[str] | None = None) ->
     sources = [{"name": n, "start_frame": m.start_frame, "num_frames": m.num_frames, "provenance": m.provenance}
                for n, m in sorted(zip(names, models), key=lambda p: p[1].start_frame)]
     provenance = {"tool": TOOL, "version": stg_runtime.__version__, "sources": sources}
-    return Model(first.kind, first.fps, [p[2] for p in pieces], cameras=cameras, bounds=bounds,
-                 provenance=provenance)
+    segments = [p[2] for p in pieces]
+    fades = [0] + [seam_crossfade(a, b, crossfade) for a, b in zip(segments, segments[1:])]
+    segments = [seg if seg.crossfade_frames == fade else replace(seg, crossfade_frames=fade)
+                for seg, fade in zip(segments, fades)]
+    return Model(first.kind, first.fps, segments, cameras=cameras, bounds=bounds, provenance=provenance)
 
 
 def attribute_encodings(path) -> dict[str, set[str]]:
@@ -96,8 +114,9 @@ def attribute_encodings(path) -> dict[str, set[str]]:
     return found
 
 
-def merge_files(paths: Sequence, out_path, provenance: dict | None = None) -> Model:
-    """Merge the .stg files `paths` into `out_path` (written atomically) and return the merged Model.
+def merge_files(paths: Sequence, out_path, provenance: dict | None = None, crossfade: int | None = None) -> Model:
+    """Merge the .stg files `paths` into `out_path` (written atomically) and return the merged Model
+    (crossfade: as merge_models).
 
     provenance: keys that replace or extend the merged provenance (tool, version, sources). Raises
     FormatError naming a file that is not a valid .stg file, ValueError naming an unreadable file or
@@ -117,7 +136,7 @@ def merge_files(paths: Sequence, out_path, provenance: dict | None = None) -> Mo
             raise ValueError(f"{path}: cannot read ({e.strerror or e})") from None
         for name, used in found.items():
             encodings.setdefault(name, set()).update(used)
-    model = merge_models(models, names=paths)
+    model = merge_models(models, names=paths, crossfade=crossfade)
     if provenance:
         model.provenance.update(provenance)
     keep = {name: next(iter(used)) for name, used in encodings.items() if name in ATTRIBUTES and len(used) == 1}

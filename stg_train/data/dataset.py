@@ -31,9 +31,13 @@ class Dataset:
     "sfm"), None without bounds.
     scene_bounds: (min (3,), max (3,)) world box when the layout has one, else None.
     start_frame: index in the whole video of this dataset's frame 0 (non-zero for `frame_range` views).
+    context_frames: (before, after): of this dataset's frames, how many at its start and at its end are
+    context, fitted to but not shown (a segment's neighbouring frames, stg_train.segments); the frames
+    shown are `shown()`.
     """
 
     start_frame = 0
+    context_frames = (0, 0)
 
     def __init__(self, cameras: Sequence[Camera], frames, fps: float, test_cameras: Iterable[int] = (),
                  bounds: np.ndarray | None = None, scene_bounds=None, path: str | os.PathLike | None = None,
@@ -103,16 +107,28 @@ class Dataset:
         """(H, W, 3) float32 RGB in [0, 1]: `frame` / 255."""
         return self.frame(camera_index, frame_index).astype(np.float32) / 255.0
 
-    def frame_range(self, start: int, count: int) -> "Dataset":
+    def frame_range(self, start: int, count: int, context: tuple[int, int] = (0, 0)) -> "Dataset":
         """A view of frames [start, start + count) (a time segment): same cameras and settings, the
         frames array sliced without copying (a memmap stays a memmap); its frame k is frame start + k
-        here, and its start_frame is self.start_frame + start."""
-        if not (0 <= start and 0 < count and start + count <= self.num_frames):
-            raise IndexError(f"frames {start}..{start + count - 1} are not within 0..{self.num_frames - 1}")
+        here, and its start_frame is self.start_frame + start. context (before, after): the view also
+        holds that many frames before and after as context (its context_frames; it then starts
+        `before` frames earlier)."""
+        before, after = (int(c) for c in context)
+        first, end = start - before, start + count + after
+        if not (0 <= first and 0 < count and min(before, after) >= 0 and end <= self.num_frames):
+            raise IndexError(f"frames {first}..{end - 1} are not within 0..{self.num_frames - 1}")
         view = copy.copy(self)
-        view.frames = self.frames[:, start:start + count]
-        view.start_frame = self.start_frame + int(start)
+        view.frames = self.frames[:, first:end]
+        view.start_frame = self.start_frame + int(first)
+        view.context_frames = (before, after)
         return view
+
+    def shown(self) -> "Dataset":
+        """This dataset without its context frames (itself when it has none)."""
+        before, after = self.context_frames
+        if not before and not after:
+            return self
+        return self.frame_range(before, self.num_frames - before - after)
 
     def with_bounds(self, bounds: np.ndarray, source: str) -> "Dataset":
         """A view with near/far depth bounds (C, 2) from `source` (see bounds_source); the frames are

@@ -1,7 +1,7 @@
 """One segment's training run as a job that any worker can run, and run again.
 
-A job is the segment's frame_range view of the dataset (whose frames, when loaded lazily, are decoded
-by the job into the segment's own frame-cache chunk), its folder OUT/segments/NN and the settings. A
+A job is the segment's view of the dataset (segments.segment_view: its frames and context frames, which,
+when loaded lazily, are decoded by the job into the segment's own frame-cache chunks), its folder OUT/segments/NN and the settings. A
 job always resumes: it continues from the folder's checkpoint.pt when there is one, so a job run again
 after its worker died continues from that worker's last checkpoint; the driver removes the checkpoints
 of segments that are to be trained afresh before any job starts (make_jobs).
@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Callable
 
 from ..pipeline import train
-from ..segments import segment_dir
+from ..segments import segment_dir, segment_view
 from ..threads import set_cpu_threads
 from ..trainer import TrainConfig
 
@@ -45,7 +45,7 @@ def make_jobs(dataset, out: Path, plan, todo, config: TrainConfig, resume: bool,
         span, folder = plan[i], segment_dir(out, i, len(plan))
         if not resume:
             (folder / "checkpoint.pt").unlink(missing_ok=True)
-        jobs.append(SegmentJob(i, dataset.frame_range(span.start, span.count), folder, config, check, threads))
+        jobs.append(SegmentJob(i, segment_view(dataset, span, config.segment_context), folder, config, check, threads))
     return jobs
 
 

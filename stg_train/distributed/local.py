@@ -135,7 +135,8 @@ def train_on_devices(dataset, out, config: TrainConfig, segment_frames: int, dev
     module-level function or a functools.partial of one). Raises DistributedError when a segment's
     worker died on every try, DataError and SegmentError as a local run."""
     out = Path(out).resolve()
-    dataset, plan, todo = prepare_segments(dataset, out, segment_frames, indices, resume, quiet)
+    dataset, plan, todo = prepare_segments(dataset, out, segment_frames, indices, resume, quiet,
+                                                   config.segment_context)
     if todo:
         jobs = make_jobs(dataset, out, plan, todo, config, resume, check, threads)
         board = Board({j.index: j.config.iterations for j in jobs})

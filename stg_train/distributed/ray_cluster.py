@@ -133,7 +133,8 @@ def train_on_ray(dataset, out, config: TrainConfig, segment_frames: int, indices
     out = Path(out).resolve()
     started = connect(ray, address)
     try:
-        dataset, plan, todo = prepare_segments(dataset, out, segment_frames, indices, resume, quiet)
+        dataset, plan, todo = prepare_segments(dataset, out, segment_frames, indices, resume, quiet,
+                                               config.segment_context)
         if todo:
             jobs = make_jobs(dataset, out, plan, todo, config, resume, check, threads)
             resources = _resources(ray, config, threads)
