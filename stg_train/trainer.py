@@ -41,6 +41,25 @@ CHECKPOINT_VERSION = 1
 
 
 # -- the trainer ------------------------------------------------------------------------------------
+#: How many frames at an end of the video TrainConfig.edge_weight applies to.
+EDGE_FRAMES = 3
+
+
+def frame_weights(num_frames: int, context: tuple[int, int], context_weight: float,
+                  edge_weight: float) -> np.ndarray | None:
+    """(num_frames,) probabilities of drawing each frame of a dataset whose first and last `context`
+    frames are context (Trainer.sample_frame), or None when they are all equal."""
+    p = np.ones(num_frames)
+    before, after = context
+    p[:before] = context_weight
+    p[num_frames - after:] = context_weight
+    if not before:
+        p[:min(EDGE_FRAMES, num_frames)] = edge_weight
+    if not after:
+        p[max(0, num_frames - EDGE_FRAMES):] = edge_weight
+    return None if np.all(p == p[0]) else p / p.sum()
+
+
 class Trainer:
     """Trains STGParams on a Dataset (stg_train.data.Dataset).
 
@@ -185,11 +204,22 @@ class Trainer:
         return frame_u8.to(self.device, non_blocking=True).float() / 255.0
 
     # -- one step -------------------------------------------------------------------------------------
+    def sample_frame(self) -> int:
+        """A frame index of the dataset, uniformly drawn, except: context frames (Dataset.context_frames,
+        a segment's neighbouring frames) are drawn TrainConfig.context_weight times as often as shown
+        ones, and the EDGE_FRAMES frames at an end of the video (where there is no context)
+        TrainConfig.edge_weight times as often."""
+        p = frame_weights(self.dataset.num_frames, getattr(self.dataset, "context_frames", (0, 0)),
+                          self.config.context_weight, self.config.edge_weight)
+        if p is None:
+            return int(self.rng.integers(self.dataset.num_frames))
+        return int(self.rng.choice(len(p), p=p))
+
     def train_step(self) -> dict:
         """One optimisation step; returns {"loss", "psnr"} of the batch."""
         cfg, ds = self.config, self.dataset
         self.step += 1
-        frame = int(self.rng.integers(ds.num_frames))
+        frame = self.sample_frame()
         train = ds.train_cameras
         views = [train[i] for i in self.rng.choice(len(train), size=min(cfg.batch, len(train)), replace=False)]
         tau = frame / ds.num_frames

@@ -177,6 +177,10 @@ def build_parser() -> argparse.ArgumentParser:
                                    "gaps or overlaps) into one multi-segment file.")
     m.add_argument("inputs", nargs="+", metavar="IN.stg", help="files to join (any order)")
     m.add_argument("output", metavar="OUT.stg")
+    m.add_argument("--crossfade", type=nonnegative_int, default=None, metavar="B",
+                   help="crossfade every seam over B frames, at most twice the context frames its two segments "
+                        "were fitted to beyond it (stg-train --segment-context); 0: hard cuts (default: the "
+                        "context both have, so each renders only the inner half of its context)")
 
     w = sub.add_parser("export-web", help="write a folder that plays the model in any browser",
                        description="Write OUT/index.html, the web player's JavaScript and a copy of the model: a "
@@ -291,9 +295,11 @@ def _merge(args, parser) -> int:
     from ..convert.merge import merge_files
 
     inputs, out = args.inputs, _writable(args.output, args.inputs)
-    model = merge_files(inputs, out)
+    model = merge_files(inputs, out, crossfade=args.crossfade)
+    fades = [s.crossfade_frames for s in model.segments[1:]]
+    said = f", crossfades {fades} frames" if any(fades) else ""
     print(f"wrote {out}: {len(model.segments)} segments, {model.num_frames} frames, "
-          f"{sum(s.count for s in model.segments)} Gaussians")
+          f"{sum(s.count for s in model.segments)} Gaussians{said}")
     return 0
 
 

@@ -60,7 +60,8 @@ def _segment_list(text: str) -> list[int]:
 CONFIG_OPTIONS = {"model": "--model", "iterations": "--iterations", "batch": "--batch", "num_points": "--points",
                   "init": "--init", "init_every": "--init-every", "motion_init": "--motion-init", "seed": "--seed",
                   "checkpoint_every": "--checkpoint-every", "guided": "--no-guided", "device": "--device",
-                  "splatter": "--splatter", "appearance": "--appearance", "pose_refine": "--pose-refine"}
+                  "splatter": "--splatter", "appearance": "--appearance", "pose_refine": "--pose-refine",
+                  "segment_context": "--segment-context"}
 #: argparse dest -> TrainConfig field, where they differ.
 _DEST_FIELDS = {"points": "num_points", "no_guided": "guided"}
 
@@ -99,6 +100,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="frames per segment: a longer video is trained as consecutive independent models of N "
                         "frames (a last piece under N/2 frames joins the segment before it), one folder "
                         "OUT/segments/NN each, merged into OUT/model.stg (default %(default)s, as the paper)")
+    p.add_argument("--segment-context", type=nonnegative_int, default=d.segment_context, metavar="C",
+                   help="fit each segment also to up to C frames of its neighbours on either side (it still "
+                        "shows only its own frames); players then crossfade over every seam where both "
+                        "neighbours have context, over C frames (format 1.3; 0: hard cuts; default "
+                        "%(default)s; docs/training.md, \"Seams\")")
     p.add_argument("--segments", type=_segment_list, default=None, metavar="LIST",
                    help="train only these segments, indices from 0: e.g. 2,3 or 0-2 (default: all); run "
                         "the others elsewhere, copy their OUT/segments/NN folders into OUT/segments, and "
@@ -177,6 +183,7 @@ def _config(args, splatter: str) -> TrainConfig:
     base.guided, base.init_every, base.init = not args.no_guided, args.init_every, args.init
     base.motion_init = args.motion_init
     base.appearance, base.pose_refine = args.appearance, args.pose_refine
+    base.segment_context = args.segment_context
     if args.iterations:
         base.iterations = args.iterations
     if args.points:

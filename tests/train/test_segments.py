@@ -276,3 +276,78 @@ def test_merge_needs_no_torch(full_run, tmp_path):
     run = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
     _assert_same_segments(stg_format.load(tmp_path / "m.stg"), stg_format.load(full_run / "model.stg"))
+
+
+# -- context frames and crossfades (format 1.3) ----------------------------------------------------
+def test_frame_range_with_context_and_the_chunks(dataset):
+    from stg_train.segments import Span, cache_chunks, context_of, segment_view
+
+    view = dataset.frame_range(4, 2, context=(2, 1))
+    assert (view.start_frame, view.num_frames, view.context_frames) == (2, 5, (2, 1))
+    np.testing.assert_array_equal(view.frame(0, 0), dataset.frame(0, 2))
+    shown = view.shown()
+    assert (shown.start_frame, shown.num_frames, shown.context_frames) == (4, 2, (0, 0))
+    with pytest.raises(IndexError, match="frames -1..5"):
+        dataset.frame_range(1, 2, context=(2, 3))
+    plan = plan_segments(8, 4)
+    assert [context_of(s, 8, 2) for s in plan] == [(0, 2), (2, 0)]
+    assert context_of(Span(1, 4, 2), 7, 5) == (4, 1)  # no more than the video has
+    assert segment_view(dataset, plan[1], 2).start_frame == 2
+    # each segment's edge frames are their own chunks: a view with context opens the neighbour's small one
+    assert cache_chunks(plan_segments(30, 10), 2) == [(0, 2), (2, 6), (8, 2), (10, 2), (12, 6), (18, 2), (20, 2),
+                                                      (22, 6), (28, 2)]
+    assert cache_chunks(plan, 0) == [(0, 4), (4, 4)]
+
+
+def test_frame_weights():
+    from stg_train.trainer import EDGE_FRAMES, frame_weights
+
+    assert frame_weights(10, (0, 0), 1.0, 1.0) is None  # uniform: the trainer draws as before
+    p = frame_weights(12, (2, 0), 0.5, 3.0)
+    assert p.sum() == pytest.approx(1.0)
+    assert np.allclose(p[:2] / p[5], 0.5) and np.allclose(p[-EDGE_FRAMES:] / p[5], 3.0) and p[2] == p[5]
+
+
+@pytest.fixture(scope="module")
+def context_run(scene_dir, tmp_path_factory):
+    """Both segments trained with 2 context frames: each fitted to frames 0-5 and 2-7."""
+    out = tmp_path_factory.mktemp("seg_context") / "ctx"
+    assert train_main([str(scene_dir), "--out", str(out), "--segment-context", "2"] + ARGS) == 0
+    return out
+
+
+def test_context_segments_crossfade_over_the_seam(context_run, dataset):
+    model = stg_format.load(context_run / "model.stg")
+    assert [(s.start_frame, s.num_frames, s.context_frames, s.crossfade_frames) for s in model.segments] == \
+        [(0, 4, (0, 2), 0), (4, 4, (2, 0), 2)]
+    for k in (0, 1):  # each segment's own file is a valid model of its own frames
+        alone = stg_format.load(context_run / "segments" / f"{k:02d}" / "model.stg")
+        assert (alone.start_frame, alone.num_frames, alone.segments[0].context_frames) == (4 * k, 4, model.segments[k].context_frames)
+    metrics = json.loads((context_run / "metrics.json").read_text())
+    assert metrics["heldout"]["images"] == 8 and all(s["export_check"]["max_abs"] <= 2e-2 for s in metrics["segments"])
+    player = Player(context_run / "model.stg", device="cpu")
+    cam = dataset.cameras[dataset.test_cameras[0]]
+    a, b = _params(context_run, 0), _params(context_run, 1)  # trained over frames 0-5 and 2-7 (6 frames each)
+    # frames 3 and 4 blend: segment 0 at its frame 3 / 4 (tau over 0-5), segment 1 at its frame 1 / 2 (over 2-7)
+    for frame, w in ((3, 0.25), (4, 0.75)):
+        want = (1 - w) * trainer_render(a, cam, frame / 6) + w * trainer_render(b, cam, (frame - 2) / 6)
+        assert GoldenDiff.of(player.render_frame(cam, frame), want.astype(np.float32)).ok
+    assert GoldenDiff.of(player.render_frame(cam, 2), trainer_render(a, cam, 2 / 6)).ok  # outside: one segment
+    assert GoldenDiff.of(player.render_frame(cam, 5), trainer_render(b, cam, 3 / 6)).ok
+    # merge: the crossfade follows the context, and can be shortened or cut
+    files = [context_run / "segments" / f"{k:02d}" / "model.stg" for k in (0, 1)]
+    models = [stg_format.load(f) for f in files]
+    assert [s.crossfade_frames for s in merge_models(models).segments] == [0, 2]
+    assert [s.crossfade_frames for s in merge_models(models, crossfade=0).segments] == [0, 0]
+    assert [s.crossfade_frames for s in merge_models(models, crossfade=9).segments] == [0, 4]  # 2 x the context
+
+
+def test_merge_cli_crossfade(context_run, tmp_path, capsys):
+    from stg_train.cli.convert import main as convert_main
+
+    files = [str(context_run / "segments" / f"{k:02d}" / "model.stg") for k in (0, 1)]
+    assert convert_main(["merge", *files, str(tmp_path / "m.stg"), "--crossfade", "4"]) == 0
+    assert "crossfades [4] frames" in capsys.readouterr().out
+    assert stg_format.load(tmp_path / "m.stg").segments[1].crossfade_frames == 4
+    assert convert_main(["merge", *files, str(tmp_path / "cut.stg"), "--crossfade", "0"]) == 0
+    assert "crossfades" not in capsys.readouterr().out
