@@ -318,6 +318,24 @@ def test_player_cuda_matches_cpu(kind):
 
 
 @needs_kernels
+def test_player_cuda_crossfades_like_cpu():
+    """A crossfade (format 1.3) on the GPU: the two segments' renders blended, host and device outputs."""
+    from dataclasses import replace
+
+    from stg_runtime.model import Model
+    a, b = (random_model(M, "full", seed=s, width=W, height=H, radius_px=(1.0, 6.0)) for s in (0, 1))
+    model = Model("full", a.fps, [a.segments[0], replace(b.segments[0].retimed(50, 50), crossfade_frames=4)],
+                  cameras=a.cameras)
+    camera, t = model.cameras[0], 49 / model.fps  # B's weight 3/8
+    cuda_player, want = Player(model, device="cuda"), Player(model, device="cpu").render_all(camera, t)
+    for name, g, w in zip(want._fields, cuda_player.render_all(camera, t), want):
+        np.testing.assert_allclose(g, w, atol=TOL, rtol=0, err_msg=name)
+    rgb = cuda_player.render(camera, t, out="device")
+    assert device.is_device_array(rgb)
+    np.testing.assert_allclose(rgb.copy_to_host(), want.rgb, atol=TOL, rtol=0)
+
+
+@needs_kernels
 def test_auto_never_picks_the_simulator():
     assert Player(demo_model("lite", num_frames=2), device="auto").device == ("cuda" if GPU else "cpu")
 
@@ -344,4 +362,4 @@ def test_cuda_without_gpu_is_refused_clearly():
 def test_kernels_under_simulator(run_under_simulator):
     if RUN:
         pytest.skip("the kernels run directly in this process")
-    run_under_simulator(__file__, passed=23)
+    run_under_simulator(__file__, passed=24)
