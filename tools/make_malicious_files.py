@@ -8,6 +8,7 @@ and tests/convert/test_malicious.py check them. Needs the `onnx` package (the tr
 """
 from __future__ import annotations
 
+import copy
 import json
 from pathlib import Path
 
@@ -55,6 +56,17 @@ def _edited(edit, kind="full") -> bytes:
     header, section, version = split(_base(kind))
     edit(header)
     return seal(header, section, version)
+
+
+def _segmented(edit, count=2) -> bytes:
+    """The base model's segment repeated `count` times (4 frames each, the same blobs), `edit(segments)`
+    applied to the header's segment list, as a version 1.3 file (per-segment context and crossfades)."""
+    header, section, _ = split(_base())
+    first = header["segments"][0]
+    header["segments"] = [dict(copy.deepcopy(first), start_frame=4 * k) for k in range(count)]
+    header["num_frames"] = 4 * count
+    edit(header["segments"])
+    return seal(header, section, (1, 3))
 
 
 def _mlp_model(weights=None, **kw) -> onnx.ModelProto:
@@ -186,6 +198,29 @@ def stg_fixtures() -> dict[str, tuple[bytes, dict]]:
         "camera_width_1e21.stg": (_edited(_set_camera(width=10 ** 21)), refused("camera 0: .*exceeds")),
         "camera_fx_5e-324.stg": (_edited(_set_camera(fx=5e-324)), refused("camera 0: .*focal")),
         "camera_not_rigid.stg": (_edited(not_rigid), refused("camera 0: .*rigid")),
+        # format 1.3: context_frames and crossfade_frames (formats/stg-v1.md, "Segments and crossfades")
+        "crossfade_first_segment.stg": (_segmented(lambda s: s[0].update(crossfade_frames=2)),
+                                        refused("segment 0 has crossfade_frames, but no segment before it")),
+        "crossfade_overlapping.stg": (_segmented(lambda s: (s[1].update(crossfade_frames=5),
+                                                            s[2].update(crossfade_frames=4)), count=3),
+                                      refused(r"segment 1 \(4 frames\) is too short for its crossfades "
+                                              r"\(5 in, 4 out\)")),
+        "crossfade_frames_float.stg": (_segmented(lambda s: s[1].update(crossfade_frames=2.5)),
+                                       refused("segment 1: crossfade_frames must be an integer in")),
+        "crossfade_frames_string.stg": (_segmented(lambda s: s[1].update(crossfade_frames="2")),
+                                        refused("segment 1: crossfade_frames must be an integer in")),
+        "context_frames_negative.stg": (_segmented(lambda s: s[0].update(context_frames=[0, -1])),
+                                        refused("segment 0: context_frames must be a list of two integers")),
+        "context_frames_float.stg": (_segmented(lambda s: s[1].update(context_frames=[1.5, 0])),
+                                     refused("segment 1: context_frames must be a list of two integers")),
+        "context_frames_bool.stg": (_segmented(lambda s: s[0].update(context_frames=[0, True])),
+                                    refused("segment 0: context_frames must be a list of two integers")),
+        "context_frames_2_24_plus_1.stg": (_segmented(lambda s: s[0].update(context_frames=[0, 2 ** 24 + 1])),
+                                           refused("segment 0: context_frames must be a list of two integers")),
+        # the largest crossfade two 4-frame segments allow (8 frames: all of both); t = 0 is inside it
+        "crossfade_at_the_limit.stg": (_segmented(lambda s: (s[0].update(context_frames=[0, 4]),
+                                                             s[1].update(context_frames=[4, 0], crossfade_frames=8))),
+                                       loads),
     }
 
 

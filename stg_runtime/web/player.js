@@ -11,8 +11,10 @@
 //
 // Each displayed frame uses the latest depth order the sort worker returned: it may be a few frames old
 // while the view or the time changes (docs/web.md, "Sorting"); snapshot() always waits for its own.
+// Inside a crossfade (format 1.3, stg-format.js segmentsAt) both segments are sorted and drawn, and the
+// frame is (1 - w) A + w B (renderer.js drawCrossfade).
 
-import { DEFAULT_LIMITS, FormatError, parseCamera, readStg, segmentAt } from "./stg-format.js";
+import { DEFAULT_LIMITS, FormatError, parseCamera, readStg, segmentAt, segmentsAt } from "./stg-format.js";
 import { openRanged } from "./stream.js";
 import { Renderer } from "./renderer.js";
 
@@ -43,7 +45,7 @@ export class StgPlayer {
     this.file = null;               // a RangedFile (stream.js) when segments arrive by range requests
     this.pending = new Map();       // sort id -> resolve
     this.nextId = 1;
-    this.inFlight = 0;
+    this.inFlight = 0;              // display sorts requested and not yet answered
     this.sortedFor = null;          // the key of the last sort requested for display
     this.cam = null;
     this.t = 0;
@@ -191,21 +193,25 @@ export class StgPlayer {
     if (i + 1 < this.model.segments.length) this.ensureSegment(i + 1).catch(() => {});
   }
 
-  /** The uploaded segment showing the current time and tau, or null while it is being fetched. */
+  /** The uploaded segment holding the current time, {gpu, index, tau, parts}, with parts what the time
+   * shows: [{gpu, index, tau, weight}], that segment, or two inside a crossfade (segmentsAt); null while
+   * one of them is being fetched. */
   current() {
-    const { index, tau } = segmentAt(this.model, this.t);
-    if (!this.gpu.has(index)) {
-      this.ensureSegment(index).catch(() => {});
-      this.onStatus(`loading segment ${index + 1} of ${this.model.segments.length}`);
+    const parts = segmentsAt(this.model, this.t);
+    const missing = parts.filter((p) => !this.gpu.has(p.index));
+    if (missing.length) {
+      for (const p of missing) this.ensureSegment(p.index).catch(() => {});
+      this.onStatus(`loading segment ${missing[0].index + 1} of ${this.model.segments.length}`);
       this.waiting = true;
       return null;
     }
+    const { index, tau } = segmentAt(this.model, this.t);  // (a crossfade's other segment is its neighbour)
     if (index !== this.shownSegment) {
       this.shownSegment = index;
       this.keepAround(index);
     }
     if (this.waiting) { this.waiting = false; this.onStatus(""); }
-    return { gpu: this.gpu.get(index), index, tau };
+    return { gpu: this.gpu.get(index), index, tau, parts: parts.map((p) => ({ ...p, gpu: this.gpu.get(p.index) })) };
   }
 
   requestSort(index, tau) {
@@ -224,21 +230,24 @@ export class StgPlayer {
       gpu.orderId = result.id;
     }
     const resolve = this.pending.get(result.id);
-    if (resolve) { this.pending.delete(result.id); resolve(result); } else this.inFlight = 0;
+    if (resolve) { this.pending.delete(result.id); resolve(result); } else this.inFlight = Math.max(0, this.inFlight - 1);
   }
 
   /** ImageData of a complete frame at the camera's own size, sorted for exactly this camera and time. */
   async snapshot() {
     if (!this.model) throw new Error("no model loaded");
-    const { index, tau } = segmentAt(this.model, this.t);
-    const gpu = await this.ensureSegment(index);
+    const parts = segmentsAt(this.model, this.t);
+    const gpus = await Promise.all(parts.map((p) => this.ensureSegment(p.index)));
     if (this.error) throw new Error(this.error);
     const cam = this.cam;
-    const id = this.requestSort(index, tau);
-    const result = await new Promise((resolve) => this.pending.set(id, resolve));
-    this.renderer.setOrder(gpu, result.order);
-    gpu.orderId = Math.max(gpu.orderId || 0, id);
-    const pixels = this.renderer.draw(gpu, cam, tau, "pixels");
+    const ids = parts.map((p) => this.requestSort(p.index, p.tau));
+    const results = await Promise.all(ids.map((id) => new Promise((resolve) => this.pending.set(id, resolve))));
+    results.forEach((result, k) => {
+      this.renderer.setOrder(gpus[k], result.order);
+      gpus[k].orderId = Math.max(gpus[k].orderId || 0, ids[k]);
+    });
+    const pixels = parts.length === 1 ? this.renderer.draw(gpus[0], cam, parts[0].tau, "pixels")
+      : this.renderer.drawCrossfade(parts.map((p, k) => ({ ...p, gpu: gpus[k] })), cam, "pixels");
     return new ImageData(new Uint8ClampedArray(pixels.buffer), cam.width, cam.height);
   }
 
@@ -261,19 +270,21 @@ export class StgPlayer {
         this.fpsStart = now;
         this.onFrame(this);
       }
-      const now_ = this.current();
-      if (!now_) return;
-      const { gpu, index, tau } = now_;
-      const key = `${index} ${tau} ${this.cam.worldToCamera.join(",")}`;
+      const shown = this.current();
+      if (!shown) return;
+      const { parts } = shown;
+      const key = `${parts.map((p) => `${p.index} ${p.tau}`).join(" ")} ${this.cam.worldToCamera.join(",")}`;
       if (key !== this.sortedFor && !this.inFlight) {
         this.sortedFor = key;
-        this.inFlight = this.requestSort(index, tau);
+        this.inFlight = parts.length;
+        for (const p of parts) this.requestSort(p.index, p.tau);
       }
-      if (!gpu.orderId) return;
-      const drawn = `${key} ${gpu.orderId}`;
+      if (!parts.every((p) => p.gpu.orderId)) return;
+      const drawn = `${key} ${parts.map((p) => p.gpu.orderId).join(" ")}`;
       if (drawn === this.drawn && !this.continuous) return;  // nothing changed since the last frame
       this.drawn = drawn;
-      this.renderer.draw(gpu, this.cam, tau, "canvas");
+      if (parts.length === 1) this.renderer.draw(parts[0].gpu, this.cam, parts[0].tau, "canvas");
+      else this.renderer.drawCrossfade(parts, this.cam, "canvas");
       if (this.stats.firstFrameMs === null) {  // ms since the page's navigation began, the frame finished
         this.renderer.gl.readPixels(0, 0, 1, 1, this.renderer.gl.RGBA, this.renderer.gl.UNSIGNED_BYTE, new Uint8Array(4));  // waits for it
         this.stats.firstFrameMs = performance.now();

@@ -7,8 +7,12 @@
 //   renderer.setOrder(gpu, order)         the instance order (Uint32Array of Gaussian indices, nearest first)
 //   renderer.draw(gpu, camera, tau, target) target "canvas" or "pixels" (then returns Uint8Array RGBA,
 //                                          top row first, camera.width x camera.height)
+//   renderer.drawCrossfade(parts, camera, target)  inside a crossfade (formats/stg-v1.md 1.3): parts =
+//                                          [{gpu, tau, weight}] x 2; each segment's rgb into a float
+//                                          texture, then (1 - w) A + w B in one pass; returns as draw
 
-import { DATA_WIDTH, RECORD_WIDTH, WEIGHTS_WIDTH, dataLayout, splatShaders, colourShaders, mlpWeights } from "./shaders.js";
+import { DATA_WIDTH, RECORD_WIDTH, WEIGHTS_WIDTH, dataLayout, splatShaders, colourShaders, crossfadeShaders,
+  mlpWeights } from "./shaders.js";
 
 /** The largest angle off the axis a fisheye sees: the first zero of d theta_d / d theta, or pi. */
 export function fisheyeMaxAngle(k) {
@@ -232,8 +236,81 @@ export class Renderer {
   /** Render `gpu` (its current order) seen by `camera` at normalised time tau into the canvas, or into
    * pixels (returned: Uint8Array RGBA, top row first). */
   draw(gpu, camera, tau, target = "canvas") {
-    const gl = this.gl, W = camera.width, H = camera.height, u = cameraUniforms(camera);
-    const t = this.ensureTargets(W, H), n = gpu.instances;
+    const u = cameraUniforms(camera), t = this.ensureTargets(camera.width, camera.height);
+    this.splat(gpu, camera, u, tau, t);
+    this.colour(gpu, camera, u, t, target === "canvas" ? null : t.rgbaFbo, target === "canvas");
+    return this.finish(camera, target, t);
+  }
+
+  /** Inside a crossfade: parts [{gpu, tau, weight}, {gpu, tau, weight}] (stg-format.js segmentsAt, the
+   * earlier segment first; weights add up to 1), each rendered to its rgb in a float texture, then
+   * shown as (1 - w) A + w B, w the later segment's weight. Returns as draw. */
+  drawCrossfade(parts, camera, target = "canvas") {
+    const gl = this.gl, u = cameraUniforms(camera), t = this.ensureTargets(camera.width, camera.height);
+    const fade = this.ensureFadeTargets(camera.width, camera.height);
+    parts.forEach((part, k) => {
+      this.splat(part.gpu, camera, u, part.tau, t);
+      this.colour(part.gpu, camera, u, t, fade.fbos[k], false);
+    });
+    const mix = this.program("crossfade", crossfadeShaders());
+    this.bindTarget(camera, target === "canvas" ? null : t.rgbaFbo);
+    gl.useProgram(mix.program);
+    gl.uniform1i(mix.uniforms.u_flip, target === "canvas" ? 1 : 0);
+    gl.uniform1f(mix.uniforms.u_height, camera.height);
+    gl.uniform1f(mix.uniforms.u_w, parts[1].weight);
+    fade.textures.forEach((tex, k) => {
+      gl.activeTexture(gl.TEXTURE0 + k);
+      gl.bindTexture(gl.TEXTURE_2D, tex);
+      gl.uniform1i(mix.uniforms[k ? "u_b" : "u_a"], k);
+    });
+    gl.drawArrays(gl.TRIANGLES, 0, 3);
+    return this.finish(camera, target, t);
+  }
+
+  /** Two RGBA32F targets of the camera's size for the two segments' rgb of a crossfade (made on the
+   * first crossfade, kept while the size stays). */
+  ensureFadeTargets(width, height) {
+    const gl = this.gl;
+    if (this.fade && this.fade.width === width && this.fade.height === height) return this.fade;
+    if (this.fade) {
+      this.fade.textures.forEach((tex) => gl.deleteTexture(tex));
+      this.fade.fbos.forEach((fbo) => gl.deleteFramebuffer(fbo));
+    }
+    const textures = [0, 1].map(() => this.floatTexture(gl.RGBA32F, width, height));
+    const fbos = textures.map((tex) => {
+      const fbo = gl.createFramebuffer();
+      gl.bindFramebuffer(gl.FRAMEBUFFER, fbo);
+      gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, tex, 0);
+      if (gl.checkFramebufferStatus(gl.FRAMEBUFFER) !== gl.FRAMEBUFFER_COMPLETE) throw new Error("WebGL: the crossfade target is incomplete");
+      return fbo;
+    });
+    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+    this.fade = { width, height, textures, fbos };
+    return this.fade;
+  }
+
+  /** Bind the canvas (fbo null; sized to the camera) or `fbo` as the render target, viewport the camera's. */
+  bindTarget(camera, fbo) {
+    const gl = this.gl, W = camera.width, H = camera.height;
+    if (fbo === null && (this.canvas.width !== W || this.canvas.height !== H)) { this.canvas.width = W; this.canvas.height = H; }
+    gl.bindFramebuffer(gl.FRAMEBUFFER, fbo);
+    gl.viewport(0, 0, W, H);
+  }
+
+  /** After the last pass: null for the canvas, else the pixels of t.rgbaFbo (RGBA, top row first). */
+  finish(camera, target, t) {
+    const gl = this.gl;
+    if (target === "canvas") return null;
+    const pixels = new Uint8Array(camera.width * camera.height * 4);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, t.rgbaFbo);
+    gl.readPixels(0, 0, camera.width, camera.height, gl.RGBA, gl.UNSIGNED_BYTE, pixels);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+    return pixels;
+  }
+
+  /** Passes 1 and 2: `gpu` (its current order) at tau, its features splatted into the targets t. */
+  splat(gpu, camera, u, tau, t) {
+    const gl = this.gl, W = camera.width, H = camera.height, n = gpu.instances;
     // 1. time evaluation and footprints, one record per Gaussian in depth order
     const project = gpu.project;
     gl.useProgram(project.program);
@@ -276,18 +353,17 @@ export class Renderer {
       gl.bindVertexArray(null);
       gl.disable(gl.BLEND);
     }
-    // 3. colour
+  }
+
+  /** Pass 3, colour: the features in the targets t -> rgb into `fbo` (null: the canvas), rows flipped
+   * when `flip` (the canvas shows the top row first). */
+  colour(gpu, camera, u, t, fbo, flip) {
+    const gl = this.gl, outputs = gpu.kind === "full" ? 3 : 1;
     const colour = gpu.colour;
-    if (target === "canvas") {
-      if (this.canvas.width !== W || this.canvas.height !== H) { this.canvas.width = W; this.canvas.height = H; }
-      gl.bindFramebuffer(gl.FRAMEBUFFER, null);
-    } else {
-      gl.bindFramebuffer(gl.FRAMEBUFFER, t.rgbaFbo);
-    }
-    gl.viewport(0, 0, W, H);
+    this.bindTarget(camera, fbo);
     gl.useProgram(colour.program);
     this.setCamera(u, colour.uniforms);
-    gl.uniform1i(colour.uniforms.u_flip, target === "canvas" ? 1 : 0);
+    gl.uniform1i(colour.uniforms.u_flip, flip ? 1 : 0);
     const textures = [...t.features.slice(0, outputs), ...(gpu.weights ? [gpu.weights] : [])];
     ["u_f0", "u_f1", "u_f2"].slice(0, outputs).concat(gpu.weights ? ["u_weights"] : []).forEach((name, k) => {
       gl.activeTexture(gl.TEXTURE0 + k);
@@ -295,10 +371,5 @@ export class Renderer {
       gl.uniform1i(colour.uniforms[name], k);
     });
     gl.drawArrays(gl.TRIANGLES, 0, 3);
-    if (target === "canvas") return null;
-    const pixels = new Uint8Array(W * H * 4);
-    gl.readPixels(0, 0, W, H, gl.RGBA, gl.UNSIGNED_BYTE, pixels);
-    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
-    return pixels;
   }
 }

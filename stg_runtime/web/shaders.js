@@ -8,6 +8,8 @@
 //   9 features of a full model). Blending is front to back: ONE_MINUS_DST_ALPHA, ONE.
 // colourShaders(kind, mlp) -> {vertex, fragment}: one pass over the image: lite and sh clamp the splatted
 //   colour; full runs the decoder MLP per pixel on [F[3:9], camera centre, the pixel centre's world ray].
+// crossfadeShaders() -> {vertex, fragment}: inside a crossfade (1.3), (1 - w) A + w B of the two
+//   segments' rgb, each rendered by the colour pass into a float texture.
 //
 // Image coordinates: the splat targets are laid out so that gl_FragCoord.xy is the image point
 // (u + 0.5, v + 0.5) of pixel (column u, row v): row 0 is the framebuffer's first row, so readPixels
@@ -327,6 +329,27 @@ ${full ? `  vec4 b = texelFetch(u_f1, px, 0), c = texelFetch(u_f2, px, 0);
   x[6] = u_center.x; x[7] = u_center.y; x[8] = u_center.z; x[9] = ray.x; x[10] = ray.y; x[11] = ray.z;
 ${mlpCode(mlp)}  vec3 v = a.xyz + y;
   colour = vec4(clamp(${act}, 0.0, 1.0), 1.0);` : "  colour = vec4(clamp(a.xyz, 0.0, 1.0), 1.0);"}
+}`;
+  return { vertex: FULLSCREEN_VERTEX, fragment };
+}
+
+/** The crossfade pass (formats/stg-v1.md 1.3): two segments' rgb (float textures, rows as the splat
+ * targets) -> (1 - w) A + w B, rows flipped for the canvas. */
+export function crossfadeShaders() {
+  const fragment = `#version 300 es
+precision highp float;
+precision highp sampler2D;
+uniform sampler2D u_a;
+uniform sampler2D u_b;
+uniform float u_w;       // the later segment's weight
+uniform float u_height;  // pixels
+uniform int u_flip;      // 1: the canvas (rows top down on screen)
+out vec4 colour;
+void main() {
+  ivec2 px = ivec2(gl_FragCoord.xy);
+  if (u_flip == 1) px.y = int(u_height) - 1 - px.y;
+  vec3 a = texelFetch(u_a, px, 0).rgb, b = texelFetch(u_b, px, 0).rgb;
+  colour = vec4(clamp((1.0 - u_w) * a + u_w * b, 0.0, 1.0), 1.0);
 }`;
   return { vertex: FULLSCREEN_VERTEX, fragment };
 }

@@ -8,9 +8,11 @@
 //   parseHeader(headerBytes, fileSize, name, limits?) -> model without arrays (segments not yet decoded)
 //   decodeSegment(model, i, section: {length, bytes(offset, length)}) -> Promise<segment arrays>
 //   verifyChecksum(bytes) -> Promise<void>                                    SHA-256 of all but the last 32 bytes
+//   segmentsAt(model, t) -> [{index, tau, weight}]                           what to show at t (two in a crossfade)
 //
 // A model: {name, kind, fps, numFrames, startFrame, duration, cameras: [camera], bounds, provenance,
-// fileSize, segments: [{startFrame, numFrames, count, positionDegree, rotationDegree, channels, entry,
+// fileSize, segments: [{startFrame, numFrames, count, positionDegree, rotationDegree, channels,
+// contextFrames: [before, after], crossfadeFrames (1.3; [0, 0] and 0 when absent), entry,
 // decoded: null | {opacity, t_center, t_scale, position, rotation, scale, features (Float32Array, C-order),
 // decoder: null | MLP (onnx-mlp.js), activation}}]}. A camera: {name, width, height, fx, fy, cx, cy,
 // model: "pinhole" | "fisheye", k: [k1, k2, k3, k4], worldToCamera: [16 numbers, row-major]}.
@@ -19,13 +21,14 @@ import { readMlp } from "./onnx-mlp.js";
 import { sha256 } from "./sha256.js";
 
 export const MAGIC = [0x89, 0x53, 0x54, 0x47, 0x0d, 0x0a, 0x1a, 0x0a];
-export const VERSION = [1, 2];
+export const VERSION = [1, 3];
 export const PREFIX_SIZE = 20;
 export const MAX_HEADER = 64 * 2 ** 20;
 export const KINDS = ["lite", "full", "sh"];
 export const ACTIVATIONS = ["sigmoid", "clamp", "identity"];
 export const ATTRIBUTES = ["opacity", "t_center", "t_scale", "position", "rotation", "scale", "features"];
 export const SH_CHANNELS = [3, 12, 27, 48];
+export const MAX_SPAN = 2 ** 24;  // the largest context_frames / crossfade_frames value a reader accepts (1.3)
 const BYTES = { f32: 4, f16: 2, u8: 1, u16: 2 };
 const CODECS = ["raw", "zlib"];
 
@@ -122,7 +125,15 @@ function layout(s, where, kind, limits) {
   const attributes = get(s, "attributes", "dict", where);
   for (const name of ATTRIBUTES) if (!(name in attributes)) fail(`${where}: missing attribute '${name}'`);
   const channels = featureChannels(attributes.features, kind, `${where}, attribute 'features'`);
-  return { startFrame: start, numFrames: frames, count, positionDegree: pdeg, rotationDegree: qdeg, channels };
+  const span = (v) => Number.isInteger(v) && v >= 0 && v <= MAX_SPAN;  // (true, 1.5, "2": not integers)
+  const context = "context_frames" in s ? s.context_frames : [0, 0];
+  if (!(Array.isArray(context) && context.length === 2 && context.every(span))) {
+    fail(`${where}: context_frames must be a list of two integers in [0, ${MAX_SPAN}]`);
+  }
+  const crossfade = "crossfade_frames" in s ? s.crossfade_frames : 0;
+  if (!span(crossfade)) fail(`${where}: crossfade_frames must be an integer in [0, ${MAX_SPAN}]`);
+  return { startFrame: start, numFrames: frames, count, positionDegree: pdeg, rotationDegree: qdeg, channels,
+    contextFrames: context.slice(), crossfadeFrames: crossfade };
 }
 
 function camera(c, limits) {
@@ -228,6 +239,14 @@ export function parseHeader(headerBytes, fileSize, name, limits = DEFAULT_LIMITS
         fail(`model: segment ${i}: a ${kind} model ${kind === "full" ? "needs" : "has no"} decoder`);
       }
     });
+    if (segments[0].crossfadeFrames) fail("model: segment 0 has crossfade_frames, but no segment before it to fade from");
+    segments.forEach((s, i) => {  // a segment's fade-in and fade-out must not overlap (formats/stg-v1.md, section 2)
+      const fadeOut = i + 1 < segments.length ? segments[i + 1].crossfadeFrames : 0;
+      if (s.crossfadeFrames + fadeOut > 2 * s.numFrames) {
+        fail(`model: segment ${i} (${s.numFrames} frames) is too short for its crossfades `
+          + `(${s.crossfadeFrames} in, ${fadeOut} out): half of each must fit in it`);
+      }
+    });
     const cameras = ("cameras" in header ? get(header, "cameras", "list", "header") : []).map((c, i) => {
       try {
         return camera(c, limits);
@@ -263,8 +282,25 @@ const HALF = (() => {  // uint16 bits -> float32, every value
   return out;
 })();
 
+/** Whether the whole of `data` is a zlib stream (any output, discarded) that the platform reads without error. */
+async function inflates(data) {
+  const reader = new Blob([data]).stream().pipeThrough(new DecompressionStream("deflate")).getReader();
+  try {
+    for (;;) if ((await reader.read()).done) return true;
+  } catch {
+    return false;
+  }
+}
+
+let refusesJunk = null;  // a Promise: whether this platform's DecompressionStream refuses bytes after the stream
+function platformRefusesJunk() {  // (Chromium does; node 20 ignores them)
+  if (refusesJunk === null) refusesJunk = inflates(new Uint8Array([0x78, 0x9c, 0x03, 0x00, 0, 0, 0, 1, 0])).then((ok) => !ok);
+  return refusesJunk;
+}
+
 async function inflate(data, size, where) {
-  // zlib (RFC 1950) through the platform's DecompressionStream; never more than `size` bytes.
+  // zlib (RFC 1950) through the platform's DecompressionStream; never more than `size` bytes, and the
+  // stream must end exactly at the end of the blob (as Python's zlib checks).
   const junk = `${where}: zlib data does not end after ${size} bytes (longer, cut short or with junk)`;
   const out = new Uint8Array(size);
   let at = 0;
@@ -282,6 +318,9 @@ async function inflate(data, size, where) {
     fail(junk);
   }
   if (at !== size) fail(`${where}: blob holds ${at} bytes, shape and encoding imply ${size}`);
+  // Where the platform ignores bytes after the stream's end: the stream ends at the blob's last byte
+  // exactly when the blob without that byte is not a whole stream.
+  if (!(await platformRefusesJunk()) && (await inflates(data.subarray(0, data.length - 1)))) fail(junk);
   return out;
 }
 
@@ -390,11 +429,37 @@ export async function readStg(bytes, name = "<bytes>", limits = DEFAULT_LIMITS) 
   return model;
 }
 
-/** The segment index showing time t (seconds) and its normalised time tau (formats/stg-v1.md, section 2). */
+/** The segment index holding time t (seconds) and its normalised time tau (formats/stg-v1.md, section 2);
+ * inside a crossfade, the one whose frames hold t (segmentsAt says what to show). */
 export function segmentAt(model, t) {
   const frame = Math.floor(t * model.fps + 1e-9);
   let i = 0;
   while (i < model.segments.length - 1 && frame >= model.segments[i].startFrame + model.segments[i].numFrames) i++;
-  const s = model.segments[i];
-  return { index: i, tau: (t - s.startFrame / model.fps) / (s.numFrames / model.fps) };
+  return { index: i, tau: tauOf(model, model.segments[i], t) };
+}
+
+/** Normalised time of `segment` at t seconds (outside [0, 1] beyond its frames). */
+export function tauOf(model, segment, t) {
+  return (t - segment.startFrame / model.fps) / (segment.numFrames / model.fps);
+}
+
+/** What a player shows at time t (stg_runtime.model.Model.segments_at): [{index, tau, weight}], one entry
+ * of weight 1, or two (the earlier segment first) inside a crossfade, whose weights add up to 1; the
+ * image is (1 - w) render_A + w render_B. A crossfade of b frames into segment B starting at frame s
+ * spans x = t * fps in [s - 1/2 - b/2, s - 1/2 + b/2], w = (x - (s - 1/2 - b/2)) / b (section 2,
+ * "Segments and crossfades"). */
+export function segmentsAt(model, t) {
+  const { index, tau } = segmentAt(model, t);
+  const x = t * model.fps, segments = model.segments;
+  for (const later of [index, index + 1]) {  // the fade into the segment, and the fade out of it
+    if (later > 0 && later < segments.length && segments[later].crossfadeFrames) {
+      const b = segments[later].crossfadeFrames;
+      const w = (x - (segments[later].startFrame - 0.5 - 0.5 * b)) / b;
+      if (w > 0 && w < 1) {
+        return [{ index: later - 1, tau: tauOf(model, segments[later - 1], t), weight: 1 - w },
+          { index: later, tau: tauOf(model, segments[later], t), weight: w }];
+      }
+    }
+  }
+  return [{ index, tau, weight: 1 }];
 }

@@ -18,6 +18,7 @@ try {
       d.decoder.biases.forEach((b, k) => b && put(`seg${i}_b${k}.f32`, b));
     }
     return { start_frame: s.startFrame, num_frames: s.numFrames, count: s.count, channels: s.channels,
+      context_frames: s.contextFrames, crossfade_frames: s.crossfadeFrames,
       activation: d.activation, layers: d.decoder ? d.decoder.weights.map((w, k) => [w.rows, w.cols, !!d.decoder.biases[k]]) : null };
   });
   writeFileSync(`${out}/meta.json`, JSON.stringify({ kind: model.kind, fps: model.fps, num_frames: model.numFrames,

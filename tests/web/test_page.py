@@ -1,8 +1,9 @@
 """The web player (stg_runtime/web) in real headless Chromium with software WebGL2 (SwiftShader): its
 snapshot() matches Player.render at >= 40 dB for every test vector (lite with two segments, full, full
-quantized, sh, full through a fisheye) at 3 cameras x 3 times; the depth order follows time (two
-Gaussians crossing in depth); every malicious fixture, and fuzzed files the Python reader refuses, end
-in a message in the page within 5 s; long videos stream by range requests; the controls work; and a
+quantized, sh, full through a fisheye, two full segments crossfaded) at 3 cameras x 3 times (and inside
+each crossfade; there the frame loop's canvas too, and the crossfades of a streamed video); the depth
+order follows time (two Gaussians crossing in depth); every malicious fixture, and fuzzed files the
+Python reader refuses, end in a message in the page within 5 s; long videos stream by range requests; the controls work; and a
 model exported with `stg-convert export-web`, served by `python -m http.server`, matches the Player.
 The lowest PSNR is printed (pytest -s) and recorded in docs/web.md."""
 from __future__ import annotations
@@ -31,7 +32,7 @@ from stg_runtime.web.export import export_web  # noqa: E402
 ROOT = Path(__file__).resolve().parents[2]
 VECTORS = ROOT / "formats" / "vectors"
 MALICIOUS = ROOT / "tests" / "runtime" / "malicious"
-NAMES = ["lite", "full", "full_quantized", "sh", "full_fisheye"]
+NAMES = ["lite", "full", "full_quantized", "sh", "full_fisheye", "full_crossfade"]
 MIN_PSNR = 40.0
 
 
@@ -76,8 +77,14 @@ def views(camera: Camera, target) -> list[Camera]:
 
 
 def times(player: Player) -> list[float]:
-    """First frame, a middle time (in the second segment of a two-segment file) and the end."""
-    return [player.start_time, player.start_time + 0.55 * player.duration, player.start_time + player.duration]
+    """First frame, a middle time (in the second segment of a two-segment file) and the end; and inside
+    each crossfade (format 1.3), where the later segment's weight is 1/8 and 1/2 (0.3 and 0.45 s in
+    full_crossfade.stg)."""
+    out = [player.start_time, player.start_time + 0.55 * player.duration, player.start_time + player.duration]
+    for seg in player.model.segments:
+        b = seg.crossfade_frames
+        out += [(seg.start_frame - 0.5 - 0.5 * b + w * b) / player.fps for w in (0.125, 0.5) if b]
+    return out
 
 
 @pytest.mark.parametrize("name", NAMES)
@@ -96,6 +103,58 @@ def test_vector_matches_the_player(site, browser, name):
             values.append(page.psnr(image[..., :3], reference))
     print(f"\n{name}: PSNR {min(values):.2f} .. {max(values):.2f} dB over {len(values)} views")
     assert min(values) >= MIN_PSNR, values
+
+
+CANVAS_PIXELS = """
+const [cam, t, done] = arguments, p = window.stg.player, gl = p.renderer.gl;
+p.pause();
+p.setCamera(cam);
+p.setTime(t);
+p.sortedFor = null;   // so that the frame loop sorts again for this view and time
+p.continuous = true;  // and draws every frame
+const end = performance.now() + 60000;
+let sorted = false;
+const step = () => {  // an animation frame callback: it runs after the player's tick of the same frame
+  if (p.error || performance.now() > end) { p.continuous = false; done({error: p.error || "timed out"}); return; }
+  if (!sorted) {  // this frame's sorts answered: the next tick draws with their orders
+    sorted = p.sortedFor !== null && !p.inFlight;
+    requestAnimationFrame(step);
+    return;
+  }
+  p.continuous = false;
+  const W = p.cam.width, H = p.cam.height, pixels = new Uint8Array(4 * W * H);
+  gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+  gl.readPixels(0, 0, W, H, gl.RGBA, gl.UNSIGNED_BYTE, pixels);  // the canvas, bottom row first
+  let text = "";
+  for (let i = 0; i < pixels.length; i += 0x8000) text += String.fromCharCode(...pixels.subarray(i, i + 0x8000));
+  done({width: W, height: H, data: btoa(text)});
+};
+requestAnimationFrame(step);
+"""
+
+
+def canvas_pixels(driver, camera: dict, t: float) -> np.ndarray:
+    """(H, W, 4) uint8 of what the frame loop drew on the canvas for `camera` at time t (not snapshot())."""
+    import base64
+    result = driver.execute_async_script(CANVAS_PIXELS, camera, t)
+    if "error" in result:
+        raise AssertionError(f"canvas read failed: {result['error']}")
+    data = np.frombuffer(base64.b64decode(result["data"]), np.uint8).reshape(result["height"], result["width"], 4)
+    return data[::-1]
+
+
+def test_crossfade_on_the_canvas(site, browser):
+    """The frame loop inside a crossfade (format 1.3): both segments sorted and drawn, blended on the
+    canvas as Player.render blends them; before it, one segment."""
+    folder, url = site
+    player = Player(VECTORS / "full_crossfade.stg", device="cpu")
+    open_model(browser, url, "full_crossfade.stg")
+    camera = views(player.cameras[0], player.model.segments[0].position[:, 0].mean(axis=0))[1]
+    for t, parts in ((0.45, 2), (0.62, 2), (0.1, 1), (0.3, 2)):
+        assert len(player.model.segments_at(t)) == parts
+        image = canvas_pixels(browser, camera.to_dict(), t)
+        assert image.shape == (camera.height, camera.width, 4)
+        assert page.psnr(image[..., :3], player.render(camera, t)) >= MIN_PSNR, t
 
 
 def crossing_model() -> Model:
@@ -220,12 +279,21 @@ def long_video() -> Model:
     return Model("lite", 10.0, segments, cameras=demo_model("lite", fps=10.0, num_frames=10).cameras[:1])
 
 
+def long_crossfaded_video() -> Model:
+    """long_video with a crossfade of 4 frames into each of segments 1-3 (format 1.3)."""
+    from dataclasses import replace
+    model = long_video()
+    segments = [model.segments[0]] + [replace(s, crossfade_frames=4) for s in model.segments[1:]]
+    return Model("lite", model.fps, segments, cameras=model.cameras)
+
+
 @pytest.fixture(scope="module")
 def ranged_site(tmp_path_factory):
     folder = tmp_path_factory.mktemp("ranged")
     export_web(VECTORS / "lite.stg", folder)
     model = long_video()
     stg_format.save(model, folder / "long.stg")
+    stg_format.save(long_crossfaded_video(), folder / "long_crossfade.stg")
     stg_format.save(model, folder / "raw.stg", codec="raw")
     data = bytearray((folder / "raw.stg").read_bytes())
     data[-40] ^= 0xFF  # the low byte of a float of the last segment (stored raw): only the checksum can tell
@@ -256,6 +324,20 @@ def test_long_video_streams_segments(ranged_site, browser):
     sent = sum(n for path, n in page.RangeHandler.sent if path == "/long.stg")
     assert sent == size, page.RangeHandler.sent  # every byte once
     assert browser.execute_script("return [window.stg.player.file.checked, window.stg.error]") == [True, None]
+
+
+def test_long_crossfaded_video_streams_segments(ranged_site, browser):
+    """Crossfades across segments that arrive by range requests (both segments of a fade fetched, the
+    earlier one also when the playhead jumps back into a fade-in), each time matching the Player."""
+    folder, url = ranged_site
+    player = Player(folder / "long_crossfade.stg", device="cpu")
+    camera = player.cameras[0]
+    open_model(browser, url, "long_crossfade.stg")
+    for t in (0.0, 0.95, 2.0, 3.0, 1.05, 2.5):
+        image = page.snapshot(browser, camera.to_dict(), t)
+        assert page.psnr(image[..., :3], player.render(camera, t)) >= MIN_PSNR, t
+    assert sum(len(player.model.segments_at(t)) == 2 for t in (0.95, 2.0, 3.0, 1.05)) == 4
+    assert browser.execute_script("return window.stg.error") is None
 
 
 def test_long_video_with_a_damaged_segment_ends_in_a_message(ranged_site, browser):

@@ -47,6 +47,7 @@ def test_vectors_decode_as_in_python(path, tmp_path):
     assert len(meta["segments"]) == len(model.segments)
     for i, (js, seg) in enumerate(zip(meta["segments"], model.segments)):
         assert (js["start_frame"], js["num_frames"], js["count"]) == (seg.start_frame, seg.num_frames, seg.count)
+        assert (tuple(js["context_frames"]), js["crossfade_frames"]) == (seg.context_frames, seg.crossfade_frames)
         for name, values in seg.arrays().items():
             got = np.fromfile(tmp_path / f"seg{i}_{name}.f32", "<f4")
             np.testing.assert_array_equal(got, values.ravel(), err_msg=f"segment {i}, {name}")
@@ -61,6 +62,46 @@ def test_vectors_decode_as_in_python(path, tmp_path):
             np.testing.assert_array_equal(np.fromfile(tmp_path / f"seg{i}_w{k}.f32", "<f4"), w.ravel())
             if b is not None:
                 np.testing.assert_array_equal(np.fromfile(tmp_path / f"seg{i}_b{k}.f32", "<f4"), b)
+
+
+def test_segments_at_as_in_python(tmp_path):
+    """segmentsAt (the segments and weights the page shows at t) against Model.segments_at: the
+    crossfade vector, and three segments of 5, 3 and 6 frames with fades of 1, 3 and 3 frames (the
+    middle one faded in and out over all of it), at every half frame and between."""
+    from dataclasses import replace
+
+    from stg_runtime.model import Model
+    vector = stg_format.load(ROOT / "formats" / "vectors" / "full_crossfade.stg")
+    lite = stg_format.load(ROOT / "formats" / "vectors" / "lite.stg").segments[0]
+    for b1, b2 in ((1, 3), (3, 3)):
+        segments = [replace(lite, start_frame=0, num_frames=5),
+                    replace(lite, start_frame=5, num_frames=3, crossfade_frames=b1),
+                    replace(lite, start_frame=8, num_frames=6, crossfade_frames=b2)]
+        stg_format.save(Model("lite", 7.0, segments), tmp_path / f"three_{b1}_{b2}.stg")
+    models = {"vector.stg": vector, **{p.name: stg_format.load(p) for p in sorted(tmp_path.glob("three_*.stg"))}}
+    shutil.copy(ROOT / "formats" / "vectors" / "full_crossfade.stg", tmp_path / "vector.stg")
+    reader = json.dumps((ROOT / "stg_runtime" / "web" / "stg-format.js").as_uri())
+    script = ("import { readFileSync } from 'node:fs';"
+              f"import {{ readStg, segmentsAt }} from {reader};"
+              "const [file, ...times] = process.argv.slice(1);"
+              "const model = await readStg(new Uint8Array(readFileSync(file)), file);"
+              "console.log(JSON.stringify(times.map((t) => segmentsAt(model, Number(t)))));")
+    for name, model in models.items():
+        times = sorted({k / (4 * model.fps) for k in range(4 * model.num_frames + 1)} | {0.3, 0.45, 0.62, 0.95})
+        times = [t for t in times if t <= model.duration]
+        out = subprocess.run([NODE, "--input-type=module", "-e", script, str(tmp_path / name), *map(repr, times)],
+                             capture_output=True, text=True, timeout=60)
+        assert out.returncode == 0, out.stderr
+        crossfades = 0
+        for t, parts in zip(times, json.loads(out.stdout)):
+            index = {id(seg): k for k, seg in enumerate(model.segments)}
+            want = [(index[id(seg)], tau, w) for seg, tau, w in model.segments_at(t)]
+            got = [(p["index"], p["tau"], p["weight"]) for p in parts]
+            assert [g[0] for g in got] == [w[0] for w in want], (name, t, got, want)
+            np.testing.assert_allclose([g[1:] for g in got], [w[1:] for w in want], rtol=0, atol=1e-12,
+                                       err_msg=f"{name}, t = {t}")
+            crossfades += len(got) == 2
+        assert crossfades >= 4, (name, crossfades)
 
 
 def read_many(paths) -> dict[str, dict]:
