@@ -81,7 +81,7 @@ class TrainConfig:
     appearance_vignetting: bool = True
     pose_refine: bool = False
     camera_learning_rates: dict = field(default_factory=dict)
-    segment_context: int = 0
+    segment_context: int = 2
     context_weight: float = 1.0
     edge_weight: float = 1.0
 

@@ -224,7 +224,7 @@ def _run_training(trainer: Trainer, ckpt: Path, quiet: bool, callback, stop_on_s
             trainer.train(progress=not quiet, callback=step_done)
         except _Stop:
             trainer.save_checkpoint(ckpt)
-            raise Interrupted(ckpt, trainer.step, trainer.config.iterations) from None
+            raise Interrupted(ckpt, trainer.step, trainer.steps) from None
 
 
 def _resume(dataset, ckpt: Path, out: Path, config: TrainConfig, given: dict[str, str], quiet: bool) -> Trainer:
@@ -245,16 +245,16 @@ def _resume(dataset, ckpt: Path, out: Path, config: TrainConfig, given: dict[str
         notes.append(f"{option} replaces the checkpoint's {old!r}")
     trainer = Trainer.resume(dataset, ckpt, out_dir=out, device=config.device, splatter=config.splatter,
                              changes=changes)
-    if trainer.step > trainer.config.iterations:
+    if trainer.step > trainer.steps:
         raise ResumeConflict(f"{given.get('iterations', '--iterations')}: {ckpt} is already at step {trainer.step}: "
                              f"give more iterations than {trainer.step}")
     if not quiet:
         said = f" ({'; '.join(notes)})" if notes else ""
-        if trainer.step >= trainer.config.iterations:
-            print(f"{ckpt} is finished (step {trainer.step} of {trainer.config.iterations}){said}: exporting and "
+        if trainer.step >= trainer.steps:
+            print(f"{ckpt} is finished (step {trainer.step} of {trainer.steps}){said}: exporting and "
                   f"evaluating it again; --iterations N (more than {trainer.step}) trains on", file=sys.stderr)
         else:
-            print(f"resuming {ckpt} at step {trainer.step} of {trainer.config.iterations}{said}", file=sys.stderr)
+            print(f"resuming {ckpt} at step {trainer.step} of {trainer.steps}{said}", file=sys.stderr)
     return trainer
 
 
@@ -285,7 +285,7 @@ def train(dataset, out, config: TrainConfig, resume: bool = False, quiet: bool =
             print(f"no checkpoint in {out}: starting a new run", file=sys.stderr)
         trainer = new_trainer(dataset, config, out, quiet)
     lpips = _lpips(quiet) if lpips is None else lpips  # (said after the run's own settings and notices)
-    if trainer.step < trainer.config.iterations:
+    if trainer.step < trainer.steps:
         _run_training(trainer, ckpt, quiet, callback, stop_on_signal)
     report = export_trainer(trainer, out / "model.stg", check=check)
     result = evaluate_player(Player(report.path, device="cpu"), dataset.shown(), lpips=lpips)

@@ -28,7 +28,7 @@ from stg_runtime.progress import Progress
 from .appearance import CameraAppearance
 from .data.flow import initial_velocity
 from .config import MOTION_INITS, TrainConfig  # noqa: F401 (TrainConfig's home is config; re-exported)
-from .data.points import initial_points
+from .data.points import InitialPoints, initial_points
 from .losses import loss_fn
 from .metrics import psnr_of_mse
 from .params import LearningRates, STGParams, extent_of, position_lr, view_inputs
@@ -41,6 +41,14 @@ CHECKPOINT_VERSION = 1
 
 
 # -- the trainer ------------------------------------------------------------------------------------
+def run_steps(iterations: int, dataset) -> int:
+    """A run's length in steps: `iterations`, or for a dataset with context frames (a segment's
+    neighbouring frames, Dataset.context_frames) that many times its frames over the frames it shows,
+    so that the shown frames are drawn as often as without context."""
+    before, after = getattr(dataset, "context_frames", (0, 0))
+    return round(iterations * dataset.num_frames / (dataset.num_frames - before - after))
+
+
 #: How many frames at an end of the video TrainConfig.edge_weight applies to.
 EDGE_FRAMES = 3
 
@@ -85,17 +93,17 @@ class Trainer:
         self.device = torch.device(config.device)
         self.extent = extent_of([dataset.cameras[i] for i in dataset.train_cameras])
         self.lr = LearningRates(**config.learning_rates).scaled(config.lr_scale)
+        self.steps = run_steps(config.iterations, dataset)
         if config.stretch_rates:
-            self.lr = self.lr.stretched(config.iterations)
-        self.schedule = Schedule.scaled(config.iterations, **config.schedule)
+            self.lr = self.lr.stretched(self.steps)
+        self.schedule = Schedule.scaled(self.steps, **config.schedule)
         self.thresholds = Thresholds(**config.thresholds)
         self._rays: dict[int, Tensor] = {}
         if _state is None:
             random.seed(config.seed)
             torch.manual_seed(config.seed)
             self.rng = np.random.default_rng(config.seed)
-            self.initial = initial_points(dataset, config.init, config.num_points, self.rng, every=config.init_every,
-                                          depth_candidates=config.depth_candidates, progress=init_progress)
+            self.initial = self._initial_points(init_progress)
             xyz, rgb, t_center = self.initial.xyz, self.initial.rgb, self.initial.t_center
             if dataset.bounds is None and self.initial.bounds is not None:
                 self.dataset = dataset.with_bounds(self.initial.bounds, self.initial.bounds_source)
@@ -175,7 +183,7 @@ class Trainer:
         if self.camera_optimizer is None:
             return
         for group in self.camera_optimizer.param_groups:
-            group["lr"] = group["initial_lr"] * 0.1 ** min(self.step / self.config.iterations, 1.0)
+            group["lr"] = group["initial_lr"] * 0.1 ** min(self.step / self.steps, 1.0)
         self.camera_optimizer.step()
         self.camera_optimizer.zero_grad(set_to_none=True)
         if self.appearance is not None:
@@ -203,6 +211,19 @@ class Trainer:
         frame_u8 = torch.from_numpy(self.dataset.frame(camera_index, frame))
         return frame_u8.to(self.device, non_blocking=True).float() / 255.0
 
+    def _initial_points(self, progress) -> InitialPoints:
+        """The initial points, from the frames the dataset shows (not its context frames: those only
+        refine what the shown frames start), their t_center in the whole dataset's normalised time."""
+        ds, config = self.dataset, self.config
+        shown = ds.shown() if hasattr(ds, "shown") else ds
+        initial = initial_points(shown, config.init, config.num_points, self.rng, every=config.init_every,
+                                 depth_candidates=config.depth_candidates, progress=progress)
+        if shown is ds:
+            return initial
+        before = ds.context_frames[0]
+        return replace(initial, t_center=((initial.t_center * shown.num_frames + before) / ds.num_frames)
+                       .astype(np.float32))
+
     # -- one step -------------------------------------------------------------------------------------
     def sample_frame(self) -> int:
         """A frame index of the dataset, uniformly drawn, except: context frames (Dataset.context_frames,
@@ -225,7 +246,7 @@ class Trainer:
         tau = frame / ds.num_frames
         for group in self.optimizer.param_groups:
             if group["name"] == "xyz":
-                group["lr"] = position_lr(self.lr, self.extent, self.step, cfg.iterations)
+                group["lr"] = position_lr(self.lr, self.extent, self.step, self.steps)
         gaussians = self.params.at(tau)
         images, renders = [], []
         for ci in views:
@@ -254,13 +275,13 @@ class Trainer:
         return {"loss": loss.item(), "psnr": psnr_of_mse(max(mse, 1e-12))}
 
     def train(self, progress: bool = True, callback: Callable[["Trainer"], None] | None = None) -> None:
-        """Run to config.iterations, checkpointing every config.checkpoint_every steps and at the end.
+        """Run to self.steps, checkpointing every config.checkpoint_every steps and at the end.
         callback(trainer) runs after each step (its time is not counted in self.seconds)."""
         cfg = self.config
-        bar = Progress(total=cfg.iterations - self.step, desc="train" if self.step == 0 else f"train from {self.step}",
+        bar = Progress(total=self.steps - self.step, desc="train" if self.step == 0 else f"train from {self.step}",
                        enabled=progress)
         try:
-            while self.step < cfg.iterations:
+            while self.step < self.steps:
                 t0 = time.perf_counter()
                 figures = self.train_step()
                 self.seconds += time.perf_counter() - t0
@@ -268,7 +289,7 @@ class Trainer:
                                      "seconds": self.seconds})
                 bar.set(loss=round(figures["loss"], 4), psnr=round(figures["psnr"], 2), gaussians=self.params.count)
                 bar.update()
-                if self.out_dir is not None and (self.step % cfg.checkpoint_every == 0 or self.step == cfg.iterations):
+                if self.out_dir is not None and (self.step % cfg.checkpoint_every == 0 or self.step == self.steps):
                     self.save_checkpoint(self.out_dir / "checkpoint.pt")
                 if callback is not None:
                     callback(self)

@@ -24,7 +24,7 @@ def progress_text(trainer) -> str:
     last = trainer.history[-1] if trainer.history else {}
     loss = f"{last['loss']:.4f}" if "loss" in last else "-"
     psnr = f"{last['psnr']:.2f} dB" if "psnr" in last else "-"
-    return (f"**training**: step {trainer.step} of {trainer.config.iterations}  \n"
+    return (f"**training**: step {trainer.step} of {trainer.steps}  \n"
             f"loss {loss}, PSNR {psnr} (batch)  \n"
             f"{trainer.params.count:,} Gaussians, {trainer.seconds:.0f} s")
 
@@ -51,7 +51,7 @@ class TrainingViewer:
 
     def _update(self, trainer) -> None:
         now = time.monotonic()
-        last_step = trainer.step >= trainer.config.iterations
+        last_step = trainer.step >= trainer.steps
         if self.viewer is None:
             from stg_runtime.viewer.server import Viewer
             self.viewer = Viewer(trainer_model(trainer), host=self.host, port=self.port, device="cpu")

@@ -17,7 +17,7 @@ from typing import Callable
 from ..pipeline import train
 from ..segments import segment_dir, segment_view
 from ..threads import set_cpu_threads
-from ..trainer import TrainConfig
+from ..trainer import TrainConfig, run_steps
 
 #: Seconds between a job's progress reports.
 REPORT_INTERVAL = 0.5
@@ -34,6 +34,11 @@ class SegmentJob:
     config: TrainConfig
     check: bool = True
     threads: int | None = None
+
+    @property
+    def steps(self) -> int:
+        """The segment's training steps (trainer.run_steps: more than config.iterations with context frames)."""
+        return run_steps(self.config.iterations, self.dataset)
 
 
 def make_jobs(dataset, out: Path, plan, todo, config: TrainConfig, resume: bool, check: bool = True,
@@ -64,9 +69,9 @@ def run_segment(job: SegmentJob, report: Callable[..., None], on_step: Callable 
     def callback(trainer) -> None:
         nonlocal last
         now = time.monotonic()
-        if now - last >= REPORT_INTERVAL or trainer.step == trainer.config.iterations:
+        if now - last >= REPORT_INTERVAL or trainer.step == trainer.steps:
             last = now
-            report(job.index, step=trainer.step, iterations=trainer.config.iterations)
+            report(job.index, step=trainer.step, iterations=trainer.steps)
         if on_step is not None:
             on_step(job.index, trainer)
 

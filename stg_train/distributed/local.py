@@ -139,7 +139,7 @@ def train_on_devices(dataset, out, config: TrainConfig, segment_frames: int, dev
                                                    config.segment_context)
     if todo:
         jobs = make_jobs(dataset, out, plan, todo, config, resume, check, threads)
-        board = Board({j.index: j.config.iterations for j in jobs})
+        board = Board({j.index: j.steps for j in jobs})
         reports = multiprocessing.get_context("spawn").Queue()
         display = Display(board.snapshot(), enabled=not quiet)
 

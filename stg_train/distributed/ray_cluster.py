@@ -149,7 +149,7 @@ def train_on_ray(dataset, out, config: TrainConfig, segment_frames: int, indices
 def _run_jobs(ray, jobs, resources: dict, max_retries: int, on_step, quiet: bool) -> None:
     """Run the jobs as tasks, drawing the display until all are done; the first failure cancels the
     others and is raised."""
-    board = ray.remote(num_cpus=0)(Board).remote({j.index: j.config.iterations for j in jobs})
+    board = ray.remote(num_cpus=0)(Board).remote({j.index: j.steps for j in jobs})
     task = ray.remote(_run_task).options(max_retries=max_retries, retry_exceptions=False, **resources)
     pending = {task.remote(job, board, on_step): job for job in jobs}
     display = Display(ray.get(board.snapshot.remote()), enabled=not quiet)

@@ -26,7 +26,7 @@ from stg_train.trainer import Trainer  # noqa: E402
 # 8 frames over 2 s: the sphere moves and the box turns visibly between the two 4-frame segments.
 SCENE = dict(num_cameras=4, num_frames=8, fps=4.0, width=64, height=48)
 ARGS = ["--segment-frames", "4", "--iterations", "10", "--points", "200", "--init", "volume",
-        "--checkpoint-every", "5", "--quiet"]
+        "--checkpoint-every", "5", "--segment-context", "0", "--quiet"]  # hard cuts (context_run: with context)
 
 
 pytestmark = pytest.mark.usefixtures("two_torch_threads")
@@ -299,8 +299,10 @@ def test_frame_range_with_context_and_the_chunks(dataset):
     assert cache_chunks(plan, 0) == [(0, 4), (4, 4)]
 
 
-def test_frame_weights():
-    from stg_train.trainer import EDGE_FRAMES, frame_weights
+def test_frame_weights_and_steps(dataset):
+    from stg_train.trainer import EDGE_FRAMES, frame_weights, run_steps
+
+    assert run_steps(100, dataset) == 100 and run_steps(100, dataset.frame_range(2, 4, context=(2, 2))) == 200
 
     assert frame_weights(10, (0, 0), 1.0, 1.0) is None  # uniform: the trainer draws as before
     p = frame_weights(12, (2, 0), 0.5, 3.0)
@@ -312,7 +314,7 @@ def test_frame_weights():
 def context_run(scene_dir, tmp_path_factory):
     """Both segments trained with 2 context frames: each fitted to frames 0-5 and 2-7."""
     out = tmp_path_factory.mktemp("seg_context") / "ctx"
-    assert train_main([str(scene_dir), "--out", str(out), "--segment-context", "2"] + ARGS) == 0
+    assert train_main([str(scene_dir), "--out", str(out)] + ARGS + ["--segment-context", "2"]) == 0
     return out
 
 
@@ -325,6 +327,7 @@ def test_context_segments_crossfade_over_the_seam(context_run, dataset):
         assert (alone.start_frame, alone.num_frames, alone.segments[0].context_frames) == (4 * k, 4, model.segments[k].context_frames)
     metrics = json.loads((context_run / "metrics.json").read_text())
     assert metrics["heldout"]["images"] == 8 and all(s["export_check"]["max_abs"] <= 2e-2 for s in metrics["segments"])
+    assert [s["iterations"] for s in metrics["segments"]] == [15, 15]  # 10 x 6 frames / 4 shown (trainer.run_steps)
     player = Player(context_run / "model.stg", device="cpu")
     cam = dataset.cameras[dataset.test_cameras[0]]
     a, b = _params(context_run, 0), _params(context_run, 1)  # trained over frames 0-5 and 2-7 (6 frames each)
