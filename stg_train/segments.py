@@ -5,7 +5,12 @@ A video of F frames is cut into segments of `segment_frames` frames (the paper's
 shorter than half a segment joins the segment before it, so no segment is a near-static sliver. Each
 segment is an ordinary training run on a frame-range view of the dataset (Dataset.frame_range), in its
 own folder OUT/segments/NN/ (checkpoint.pt, model.stg starting at its start_frame, metrics.json), with
-time normalised over the segment (frame j of a segment of n frames has tau = j / n). When every segment
+time normalised over the segment (frame j of a segment of n frames has tau = j / n). With
+TrainConfig.segment_context = c, a segment is also fitted to up to c frames of each neighbour (its
+view's context frames, segment_view; the trainer normalises time over all of them and the export
+renormalises it over the shown frames, Segment.retimed, so the file still covers the segment's own
+frames), and the merge crossfades every seam whose two segments both have context
+(stg_train.convert.merge, formats/stg-v1.md "Segments and crossfades"). When every segment
 of the plan is finished, their files are merged (stg_train.convert.merge) into OUT/model.stg, which the
 Player plays end to end, and the held-out camera is evaluated over every frame.
 

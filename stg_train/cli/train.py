@@ -33,7 +33,9 @@ DATA is a dataset folder in one of these layouts (detected, or forced with --lay
 --test-camera NAME holds out another camera; --fps sets the frame rate of layouts without one (default 30).
 Writes OUT/model.stg (the player's file), OUT/checkpoint.pt and OUT/metrics.json. A video longer than
 --segment-frames is trained as consecutive independent segments, each in OUT/segments/NN/ (checkpoint.pt,
-model.stg, metrics.json), merged into one OUT/model.stg once every segment is trained.
+model.stg, metrics.json), merged into one OUT/model.stg once every segment is trained; each segment is
+also fitted to --segment-context frames of its neighbours, and players crossfade over the seams
+(docs/training.md, "Seams").
 
 Defaults, against the paper's reference code (measured in docs/training.md, "Deviations from the
 reference"): the model's formulas, the losses and the densification statistic (each view's
@@ -102,9 +104,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "OUT/segments/NN each, merged into OUT/model.stg (default %(default)s, as the paper)")
     p.add_argument("--segment-context", type=nonnegative_int, default=d.segment_context, metavar="C",
                    help="fit each segment also to up to C frames of its neighbours on either side (it still "
-                        "shows only its own frames); players then crossfade over every seam where both "
-                        "neighbours have context, over C frames (format 1.3; 0: hard cuts; default "
-                        "%(default)s; docs/training.md, \"Seams\")")
+                        "shows only its own frames, and its run is lengthened by the share of context frames, "
+                        "so its own frames get --iterations steps' worth); players then crossfade over every "
+                        "seam where both neighbours have context, over C frames (format 1.3; 0: hard cuts "
+                        "as before; default %(default)s; docs/training.md, \"Seams\")")
     p.add_argument("--segments", type=_segment_list, default=None, metavar="LIST",
                    help="train only these segments, indices from 0: e.g. 2,3 or 0-2 (default: all); run "
                         "the others elsewhere, copy their OUT/segments/NN folders into OUT/segments, and "
