@@ -81,7 +81,7 @@ TRAIN = Command(
         "model": ("--model", "lite"), "iterations": ("--iterations", "3"), "splatter": ("--splatter", "torch"),
         "device": ("--device", "cpu"), "resume": ("--resume",), "force": ("--force",),
         "segment-frames": ("--segment-frames", "2"), "segments": ("--segments", "0"),
-        "ray": ("--ray",), "checkpoint-every": ("--checkpoint-every", "1"), "batch": ("--batch", "1"),
+        "segment-context": ("--segment-context", "0"), "ray": ("--ray",), "checkpoint-every": ("--checkpoint-every", "1"), "batch": ("--batch", "1"),
         "points": ("--points", "50"), "init": ("--init", "volume"), "init-every": ("--init-every", "2"),
         "motion-init": ("--motion-init", "zero"), "seed": ("--seed", "1"), "layout": ("--layout", "n3v"),
         "fps": ("--fps", "25"), "test-camera": ("--test-camera", "cam01"), "downscale": ("--downscale", "2"),
@@ -101,6 +101,7 @@ TRAIN = Command(
          ("--init", "x"): "--init", ("--motion-init", "x"): "--motion-init", ("--layout", "x"): "--layout",
          ("--layout", "technicolor"): "undist|technicolor", ("--test-camera", "cam99"): "cam99",
          ("--segments", "5"): "--segments 5", ("--segments", "x"): "--segments", ("--segments", "-1"): "--segments",
+         ("--segment-context", "-1"): "--segment-context", ("--segment-context", "x"): "--segment-context",
          ("--viewer", "70000"): "--viewer", ("--viewer", "x"): "--viewer", ("--near", "1"): "--near.*--far",
          ("--near", "5", "--far", "1"): "--far", ("--near", "-1", "--far", "1"): "--near",
          ("--gpus", "0"): "--gpus.*--device cuda", ("--ray", "--gpus", "0"): "--gpus|--ray",
@@ -252,8 +253,9 @@ IMPORT_3DGS = Command(
 
 MERGE = Command(
     "stg-convert", ("merge", "{model}", "{out}.stg"),
-    options={}, outputs=("{out}.stg",),
-    bad={("!", "merge", "{model}", "{model}"): "input", ("!", "merge", "{model}", "{model}", "{out}.stg"): "model.stg",
+    options={"crossfade": ("--crossfade", "2")}, outputs=("{out}.stg",),
+    bad={("--crossfade", "-1"): "--crossfade", ("--crossfade", "x"): "--crossfade",
+         ("!", "merge", "{model}", "{model}"): "input", ("!", "merge", "{model}", "{model}", "{out}.stg"): "model.stg",
          ("!", "merge", "{missing}", "{out}.stg"): "missing", ("!", "merge", "{text}", "{out}.stg"): "text.txt",
          ("!", "merge", "{model}"): "OUT|output|arguments"})
 
