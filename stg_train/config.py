@@ -51,7 +51,8 @@ class TrainConfig:
     frames on each side a segment is also fitted to (as context: it shows only its own frames, and the
     players crossfade over the seam where both neighbours have context; stg_train.segments);
     context_weight: how often a context frame is drawn for a training step, relative to a shown frame;
-    edge_weight: likewise for the first and last frames of the video (trainer.EDGE_FRAMES of them).
+    edge_weight: likewise for the first and last frames of the video (trainer.EDGE_FRAMES of them; of a
+    segment, at an end where it has no context).
     docs/training.md says which defaults are the reference's and which are ours, with the measurements behind them.
     """
 

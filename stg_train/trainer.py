@@ -49,7 +49,7 @@ def run_steps(iterations: int, dataset) -> int:
     return round(iterations * dataset.num_frames / (dataset.num_frames - before - after))
 
 
-#: How many frames at an end of the video TrainConfig.edge_weight applies to.
+#: How many frames at an end without context (trainer.frame_weights) TrainConfig.edge_weight applies to.
 EDGE_FRAMES = 3
 
 
@@ -228,8 +228,8 @@ class Trainer:
     def sample_frame(self) -> int:
         """A frame index of the dataset, uniformly drawn, except: context frames (Dataset.context_frames,
         a segment's neighbouring frames) are drawn TrainConfig.context_weight times as often as shown
-        ones, and the EDGE_FRAMES frames at an end of the video (where there is no context)
-        TrainConfig.edge_weight times as often."""
+        ones, and the EDGE_FRAMES frames at an end without context (the video's first and last frames,
+        or a segment's trained without context) TrainConfig.edge_weight times as often."""
         p = frame_weights(self.dataset.num_frames, getattr(self.dataset, "context_frames", (0, 0)),
                           self.config.context_weight, self.config.edge_weight)
         if p is None:
