@@ -26,7 +26,7 @@ import json
 import math
 import os
 import zlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -239,8 +239,7 @@ def quantized(segment: Segment, choices: dict, kind: str) -> Segment:
         if not isinstance(choice, str):
             choice = list(choice)[:len(groups)]
         arrays[name] = snapped(arrays[name], choice, groups)
-    return Segment(segment.start_frame, segment.num_frames, decoder=segment.decoder,
-                   activation=segment.activation, **arrays)
+    return replace(segment, **arrays)
 
 
 def quantized_model(model: Model, choices: dict) -> Model:

@@ -169,3 +169,15 @@ def test_psnr_helpers():
     a = np.zeros((4, 4, 3))
     assert psnr_of_mse(mse([a], [a])) == np.inf
     assert psnr_of_mse(mse([a + 0.1], [a])) == pytest.approx(20.0)
+
+
+def test_compression_keeps_context_and_crossfades():
+    """Format 1.3 keys survive pruning, reordering and quantization (every preset step)."""
+    from dataclasses import replace
+
+    a, b = small_model("full", n=800, seed=2), small_model("full", n=800, seed=3)
+    model = Model("full", a.fps, [replace(a.segments[0], context_frames=(0, 2)),
+                                  replace(b.segments[0].retimed(50, 50), context_frames=(2, 0), crossfade_frames=2)],
+                  cameras=a.cameras)
+    out, _ = compress(model, "small", order="morton")
+    assert [(s.context_frames, s.crossfade_frames) for s in out.segments] == [((0, 2), 0), ((2, 0), 2)]
