@@ -50,9 +50,8 @@ class TrainConfig:
     pose_refine.POSE_LR); segment_context: for a video trained in segments, how many neighbouring
     frames on each side a segment is also fitted to (as context: it shows only its own frames, and the
     players crossfade over the seam where both neighbours have context; stg_train.segments);
-    context_weight: how often a context frame is drawn for a training step, relative to a shown frame;
-    edge_weight: likewise for the first and last frames of the video (trainer.EDGE_FRAMES of them; of a
-    segment, at an end where it has no context).
+    edge_weight: how often the first and last frames of the video (trainer.EDGE_FRAMES of them; of a
+    segment, at an end where it has no context) are drawn for a training step, relative to the others.
     docs/training.md says which defaults are the reference's and which are ours, with the measurements behind them.
     """
 
@@ -83,7 +82,6 @@ class TrainConfig:
     pose_refine: bool = False
     camera_learning_rates: dict = field(default_factory=dict)
     segment_context: int = 2
-    context_weight: float = 1.0
     edge_weight: float = 1.0
 
     def for_dataset(self, dataset) -> "TrainConfig":

@@ -53,14 +53,12 @@ def run_steps(iterations: int, dataset) -> int:
 EDGE_FRAMES = 3
 
 
-def frame_weights(num_frames: int, context: tuple[int, int], context_weight: float,
-                  edge_weight: float) -> np.ndarray | None:
+def frame_weights(num_frames: int, context: tuple[int, int], edge_weight: float) -> np.ndarray | None:
     """(num_frames,) probabilities of drawing each frame of a dataset whose first and last `context`
-    frames are context (Trainer.sample_frame), or None when they are all equal."""
+    frames are context (Trainer.sample_frame): the EDGE_FRAMES frames at an end without context
+    `edge_weight` times as often as the others; None when they are all equal."""
     p = np.ones(num_frames)
     before, after = context
-    p[:before] = context_weight
-    p[num_frames - after:] = context_weight
     if not before:
         p[:min(EDGE_FRAMES, num_frames)] = edge_weight
     if not after:
@@ -226,12 +224,11 @@ class Trainer:
 
     # -- one step -------------------------------------------------------------------------------------
     def sample_frame(self) -> int:
-        """A frame index of the dataset, uniformly drawn, except: context frames (Dataset.context_frames,
-        a segment's neighbouring frames) are drawn TrainConfig.context_weight times as often as shown
-        ones, and the EDGE_FRAMES frames at an end without context (the video's first and last frames,
-        or a segment's trained without context) TrainConfig.edge_weight times as often."""
+        """A frame index of the dataset, uniformly drawn, except that the EDGE_FRAMES frames at an end
+        without context (the video's first and last frames, or a segment's trained without context,
+        Dataset.context_frames) are drawn TrainConfig.edge_weight times as often."""
         p = frame_weights(self.dataset.num_frames, getattr(self.dataset, "context_frames", (0, 0)),
-                          self.config.context_weight, self.config.edge_weight)
+                          self.config.edge_weight)
         if p is None:
             return int(self.rng.integers(self.dataset.num_frames))
         return int(self.rng.choice(len(p), p=p))
