@@ -3,7 +3,8 @@
 played by the runtime Player, scored frame by frame against the lossless ground truth.
 
     python bench/seams.py [--frames 60] [--segment-frames 30] [--iterations 1500] [--points 8000]
-                          [--width 160] [--height 120] [--seed 0] [--one-frame] [--json PATH]
+                          [--width 160] [--height 120] [--seed 0] [--set KEY=VALUE] [--crossfades B,...]
+                          [--one-frame] [--json PATH]
 
 Views: the held-out camera cam00 and the two novel rig views of stg_train.synthetic.novel_view_dataset.
 Prints, over those views:
@@ -18,7 +19,9 @@ Prints, over those views:
 The figures are stg_train.metrics.evaluate_seams over the views' evaluate_player rows; the clip is the demo scene's (stg_train.synthetic),
 written once per size into a temp folder (or --data). Training settings are the defaults of
 stg-train (TrainConfig) with --iterations and --points; --set KEY=VALUE changes a TrainConfig field
-(VALUE as JSON, else a string), to compare a method against the baseline.
+(VALUE as JSON, else a string), to compare a method against the baseline (`--set segment_context=0`:
+hard cuts, as before format 1.3); --crossfades also plays the same segments merged with other
+crossfade widths (stg_train.convert.merge.merge_models).
 """
 from __future__ import annotations
 
