@@ -232,11 +232,14 @@ class Model:
     def segment_at(self, t: float) -> tuple[Segment, float]:
         """The segment whose frames hold time t (seconds since frame 0) and the normalised time tau
         within it (where a crossfade blends two segments, the one holding t: see segments_at)."""
-        frame = int(np.floor(t * self.fps + 1e-9))
-        for seg in self.segments:
-            if frame < seg.start_frame + seg.num_frames:
-                break
+        seg = self.segments[self._index_at(t)]
         return seg, self.tau(seg, t)
+
+    def _index_at(self, t: float) -> int:
+        """Index of the segment whose frames hold time t (the last one for t at or past the end)."""
+        frame = int(np.floor(t * self.fps + 1e-9))
+        return next((i for i, s in enumerate(self.segments) if frame < s.start_frame + s.num_frames),
+                    len(self.segments) - 1)
 
     def tau(self, segment: Segment, t: float) -> float:
         """Normalised time of `segment` at t seconds (outside [0, 1] beyond its frames)."""
@@ -248,8 +251,7 @@ class Model:
         sum of their renders. A crossfade of b frames into segment B starting at frame s spans
         x = t * fps in [s - 1/2 - b/2, s - 1/2 + b/2], with B's weight rising linearly from 0 to 1
         (formats/stg-v1.md, "Segments and crossfades")."""
-        seg, tau = self.segment_at(t)
-        i = next(k for k, s in enumerate(self.segments) if s is seg)
+        i = self._index_at(t)
         x = t * self.fps
         for later in (i, i + 1):  # the fade into seg, and the fade out of it
             if 0 < later < len(self.segments) and self.segments[later].crossfade_frames:
@@ -258,4 +260,4 @@ class Model:
                 if 0.0 < w < 1.0:
                     a_seg, b_seg = self.segments[later - 1], self.segments[later]
                     return [(a_seg, self.tau(a_seg, t), 1.0 - w), (b_seg, self.tau(b_seg, t), w)]
-        return [(seg, tau, 1.0)]
+        return [(self.segments[i], self.tau(self.segments[i], t), 1.0)]

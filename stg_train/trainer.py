@@ -92,6 +92,7 @@ class Trainer:
         self.extent = extent_of([dataset.cameras[i] for i in dataset.train_cameras])
         self.lr = LearningRates(**config.learning_rates).scaled(config.lr_scale)
         self.steps = run_steps(config.iterations, dataset)
+        self.frame_p = frame_weights(dataset.num_frames, getattr(dataset, "context_frames", (0, 0)), config.edge_weight)
         if config.stretch_rates:
             self.lr = self.lr.stretched(self.steps)
         self.schedule = Schedule.scaled(self.steps, **config.schedule)
@@ -226,12 +227,10 @@ class Trainer:
     def sample_frame(self) -> int:
         """A frame index of the dataset, uniformly drawn, except that the EDGE_FRAMES frames at an end
         without context (the video's first and last frames, or a segment's trained without context,
-        Dataset.context_frames) are drawn TrainConfig.edge_weight times as often."""
-        p = frame_weights(self.dataset.num_frames, getattr(self.dataset, "context_frames", (0, 0)),
-                          self.config.edge_weight)
-        if p is None:
+        Dataset.context_frames) are drawn TrainConfig.edge_weight times as often (self.frame_p)."""
+        if self.frame_p is None:
             return int(self.rng.integers(self.dataset.num_frames))
-        return int(self.rng.choice(len(p), p=p))
+        return int(self.rng.choice(len(self.frame_p), p=self.frame_p))
 
     def train_step(self) -> dict:
         """One optimisation step; returns {"loss", "psnr"} of the batch."""
