@@ -11,16 +11,23 @@ server that counts the bytes it sends. The page is opened fresh; figures:
 - first frame: ms from the start of navigation (performance.timeOrigin) to the first frame drawn on the
   canvas, which includes fetching, checking (SHA-256) and decoding the file and the first depth sort;
 - page FPS: frames drawn per second while playing (the time changes every frame, so every frame is
-  sorted again in the worker, concurrently), over --seconds;
-- draw ms: the median time of one complete frame (time evaluation, splatting, colour) with gl.finish,
-  the sort excluded; and the worker's sort time;
+  sorted again in the worker, concurrently), over --seconds, by the page's path; quads FPS: the same
+  by the records and quads (renderer.usePoints = false), right after;
+- draw ms: the median time of one complete frame (time evaluation, splatting, colour, read back), the
+  sort excluded, by the page's path (point sprites where the image fits the largest point size);
+  quads ms: the same by the other path (records and quads), alternating with it; and the worker's
+  sort time;
 - CPU Player FPS: Player(device="cpu").render at a new time per frame (median of 10), this process;
-- bytes: the model's bytes the page fetched, against the .stg's size, and the page's own files.
+- bytes: the model's bytes the page fetched, against the .stg's size, and the page's own files;
+- the scene's load (stg_runtime.render_load) at two times: the pixel contributions of every Gaussian's
+  footprint (what the page blends) and those before each pixel's transmittance stop (what the CPU
+  Player composites): what the stop could save.
 Chromium and the Player take turns (never at the same time), on the same cores.
 """
 from __future__ import annotations
 
 import argparse
+import os
 import functools
 import http.server
 import sys
@@ -37,6 +44,7 @@ sys.path.insert(0, str(ROOT))
 from stg_runtime import Player  # noqa: E402
 from stg_runtime import format as stg_format  # noqa: E402
 from stg_runtime.demo import like_trained_model, random_model  # noqa: E402
+from stg_runtime.render_load import scene_load  # noqa: E402
 from stg_runtime.web.export import export_web  # noqa: E402
 from tests.web import page  # noqa: E402
 
@@ -80,19 +88,34 @@ PAGE_FIGURES = """
 const [seconds, done] = arguments;
 const p = window.stg.player, r = p.renderer, gl = r.gl;
 const first = p.stats.firstFrameMs;
-// the page's FPS while playing
-p.continuous = true; p.play();
-await new Promise((ok) => setTimeout(ok, 1000));
-const start = performance.now(), frames0 = p.framesTotal;
-await new Promise((ok) => setTimeout(ok, 1000 * seconds));
-const fps = (p.framesTotal - frames0) / ((performance.now() - start) / 1000);
-p.pause(); p.continuous = false;
+// the page's FPS while playing, by its path (point sprites where they fit), then by the quads
+const play = async () => {
+  p.continuous = true; p.play();
+  await new Promise((ok) => setTimeout(ok, 1000));
+  const start = performance.now(), frames0 = p.framesTotal;
+  await new Promise((ok) => setTimeout(ok, 1000 * seconds));
+  p.pause(); p.continuous = false;
+  return (p.framesTotal - frames0) / ((performance.now() - start) / 1000);
+};
+const fps = await play();
+r.usePoints = false;
+const quadFps = await play();
+r.usePoints = true;
 // one frame's draw, sort excluded
 const {gpu, tau} = p.current();
 const draws = [];
-for (let i = 0; i < 7; i++) { gl.finish(); const t0 = performance.now(); r.draw(gpu, p.cam, tau, 'pixels'); draws.push(performance.now() - t0); }
+const quadDraws = [];
+for (let i = 0; i < 7; i++) {  // alternately: the default path (point sprites where they fit), the quads
+  for (const [points, list] of [[true, draws], [false, quadDraws]]) {
+    r.usePoints = points;
+    gl.finish(); const t0 = performance.now(); r.draw(gpu, p.cam, tau, 'pixels'); list.push(performance.now() - t0);
+  }
+}
+r.usePoints = true;
 draws.sort((a, b) => a - b);
-done({first, fps, drawMs: draws[3], sortMs: p.sortMs, instances: gpu.instances, floatBlend: r.floatBlend});
+quadDraws.sort((a, b) => a - b);
+done({first, fps, quadFps, drawMs: draws[3], quadDrawMs: quadDraws[3], points: r.pointsFit(p.cam.width, p.cam.height),
+      sortMs: p.sortMs, instances: gpu.instances, floatBlend: r.floatBlend});
 """
 
 
@@ -122,9 +145,11 @@ def main(argv=None) -> int:
     print(f"machine: {describe_machine()}")
     print(f"scene: {args.scene}, {args.gaussians} Gaussians, {width}x{height}; Chromium with SwiftShader (software "
           f"WebGL2), no GPU")
-    print(f"{'kind':5} {'first frame ms':>14} {'page FPS':>9} {'draw ms':>8} {'sort ms':>8} {'CPU FPS':>8} "
-          f"{'page/CPU':>8} {'model bytes':>11} {'.stg size':>10} {'page bytes':>10}")
+    print(f"load average: {os.getloadavg()[0]:.2f} at the start")
+    print(f"{'kind':5} {'first frame ms':>14} {'page FPS':>9} {'quads FPS':>9} {'draw ms':>8} {'quads ms':>8} {'sort ms':>8} {'CPU FPS':>8} "
+          f"{'page/CPU':>8} {'quads/CPU':>9} {'model bytes':>11} {'.stg size':>10} {'page bytes':>10}")
     work = Path(tempfile.mkdtemp(prefix="stg-web-bench-"))
+    loads = []
     driver = page.start_browser(work / "chromium")
     try:
         for kind in ("lite", "full"):
@@ -145,11 +170,18 @@ def main(argv=None) -> int:
             sent = dict(CountingHandler.sent)
             cpu = cpu_fps(site / "bench.stg")
             size = (site / "bench.stg").stat().st_size
-            print(f"{kind:5} {figures['first']:14.0f} {figures['fps']:9.2f} {figures['drawMs']:8.1f} "
-                  f"{figures['sortMs']:8.1f} {cpu:8.2f} {figures['fps'] / cpu:8.2f} {sent.get('/bench.stg', 0):11d} "
+            loads.append((kind, model))
+            print(f"{kind:5} {figures['first']:14.0f} {figures['fps']:9.2f} {figures['quadFps']:9.2f} {figures['drawMs']:8.1f} {figures['quadDrawMs']:8.1f} "
+                  f"{figures['sortMs']:8.1f} {cpu:8.2f} {figures['fps'] / cpu:8.2f} {figures['quadFps'] / cpu:9.2f} {sent.get('/bench.stg', 0):11d} "
                   f"{size:10d} {sum(sent.values()) - sent.get('/bench.stg', 0):10d}")
     finally:
         driver.quit()
+    for kind, model in loads:  # what the transmittance stop could save: contributions after it
+        for t in (0.0, 0.5 * model.duration):
+            load = scene_load(model, model.cameras[0], t)
+            blended, kept = int(load.footprints.sum()), int(load.layers.sum())
+            print(f"{kind} at t = {t:.2f} s: {load.summary()}; {blended} pixel contributions blended without the stop, "
+                  f"{kept} before it ({100 * (blended - kept) / max(blended, 1):.3f}% after it)")
     return 0
 
 

@@ -1,10 +1,13 @@
 // WebGL2 rendering of one segment at one time from one camera (formats/stg-v1.md, sections 2-3): the
-// Gaussians' data in a float texture, one instanced quad per Gaussian in the worker's depth order,
-// features splatted front to back into float render targets, then the colour pass (shaders.js).
+// Gaussians' data in a float texture; in the worker's depth order, one point sprite per Gaussian
+// (projected by its vertex shader) where the image fits the largest point size, else one record per
+// Gaussian (transform feedback) and one quad per record; features splatted front to back into float
+// render targets, then the colour pass (shaders.js).
 //
 //   new Renderer(canvas)                  throws Error with a readable message without WebGL2 or float targets
 //   renderer.upload(model, i) -> gpu      segment i's textures and programs (model from stg-format.js)
 //   renderer.setOrder(gpu, order)         the instance order (Uint32Array of Gaussian indices, nearest first)
+//   renderer.usePoints = false            always the records and quads (tests, benchmarks)
 //   renderer.draw(gpu, camera, tau, target) target "canvas" or "pixels" (then returns Uint8Array RGBA,
 //                                          top row first, camera.width x camera.height)
 //   renderer.drawCrossfade(parts, camera, target)  inside a crossfade (formats/stg-v1.md 1.3): parts =
@@ -55,6 +58,13 @@ export class Renderer {
     this.programs = new Map();
     this.targets = null;
     this.maxTexture = gl.getParameter(gl.MAX_TEXTURE_SIZE);
+    this.maxPointSize = gl.getParameter(gl.ALIASED_POINT_SIZE_RANGE)[1];
+    this.usePoints = true;  // point sprites where the image fits them (false: always the records and quads)
+  }
+
+  /** Whether a point sprite can hold any footprint's part inside a W x H image (see shaders.js). */
+  pointsFit(W, H) {
+    return this.usePoints && Math.max(W, H) + 1 <= this.maxPointSize;
   }
 
   program(key, sources) {
@@ -121,6 +131,7 @@ export class Renderer {
     const key = `${model.kind} ${L.positionDegree} ${L.rotationDegree} ${L.channels}`, sh = splatShaders(model.kind, L);
     gpu.project = this.program(`project ${key}`, { ...sh.project, attributes: ["a_index"] });
     gpu.quad = this.program(`quad ${model.kind}`, sh.quad);
+    gpu.points = this.program(`points ${key}`, { ...sh.points, attributes: ["a_index"] });
     gpu.recordTexels = sh.recordTexels;
     if (model.kind === "full") {
       const w = mlpWeights(d.decoder), wrows = Math.ceil(w.length / WEIGHTS_WIDTH);
@@ -311,6 +322,25 @@ export class Renderer {
   /** Passes 1 and 2: `gpu` (its current order) at tau, its features splatted into the targets t. */
   splat(gpu, camera, u, tau, t) {
     const gl = this.gl, W = camera.width, H = camera.height, n = gpu.instances;
+    if (this.pointsFit(W, H)) {  // one pass: a point sprite per Gaussian, projected by its vertex shader
+      this.bindSplatTargets(gpu, W, H, t);
+      if (n) {
+        gl.enable(gl.BLEND);
+        gl.blendFunc(gl.ONE_MINUS_DST_ALPHA, gl.ONE);  // front to back: dst += T src, T = 1 - dst alpha
+        const points = gpu.points;
+        gl.useProgram(points.program);
+        this.setCamera(u, points.uniforms);
+        gl.uniform1f(points.uniforms.u_tau, tau);
+        gl.activeTexture(gl.TEXTURE0);
+        gl.bindTexture(gl.TEXTURE_2D, gpu.texture);
+        gl.uniform1i(points.uniforms.u_data, 0);
+        gl.bindVertexArray(gpu.projectVao);
+        gl.drawArrays(gl.POINTS, 0, n);
+        gl.bindVertexArray(null);
+        gl.disable(gl.BLEND);
+      }
+      return;
+    }
     // 1. time evaluation and footprints, one record per Gaussian in depth order
     const project = gpu.project;
     gl.useProgram(project.program);
@@ -334,12 +364,7 @@ export class Renderer {
       gl.bindBuffer(gl.PIXEL_UNPACK_BUFFER, null);
     }
     // 2. the features, splatted front to back
-    gl.bindFramebuffer(gl.FRAMEBUFFER, t.splatFbo);
-    const outputs = gpu.kind === "full" ? 3 : 1;
-    gl.drawBuffers([gl.COLOR_ATTACHMENT0, gl.COLOR_ATTACHMENT1, gl.COLOR_ATTACHMENT2].map((b, k) => (k < outputs ? b : gl.NONE)));
-    gl.viewport(0, 0, W, H);
-    gl.clearColor(0, 0, 0, 0);
-    gl.clear(gl.COLOR_BUFFER_BIT);
+    this.bindSplatTargets(gpu, W, H, t);
     if (n) {
       gl.enable(gl.BLEND);
       gl.blendFunc(gl.ONE_MINUS_DST_ALPHA, gl.ONE);  // front to back: dst += T src, T = 1 - dst alpha
@@ -353,6 +378,16 @@ export class Renderer {
       gl.bindVertexArray(null);
       gl.disable(gl.BLEND);
     }
+  }
+
+  /** The feature targets t bound (the ones `gpu`'s kind writes) and cleared. */
+  bindSplatTargets(gpu, W, H, t) {
+    const gl = this.gl, outputs = gpu.kind === "full" ? 3 : 1;
+    gl.bindFramebuffer(gl.FRAMEBUFFER, t.splatFbo);
+    gl.drawBuffers([gl.COLOR_ATTACHMENT0, gl.COLOR_ATTACHMENT1, gl.COLOR_ATTACHMENT2].map((b, k) => (k < outputs ? b : gl.NONE)));
+    gl.viewport(0, 0, W, H);
+    gl.clearColor(0, 0, 0, 0);
+    gl.clear(gl.COLOR_BUFFER_BIT);
   }
 
   /** Pass 3, colour: the features in the targets t -> rgb into `fbo` (null: the canvas), rows flipped

@@ -1,11 +1,14 @@
 // GLSL ES 3.00 sources of the web player, generated per segment layout (formats/stg-v1.md, sections 2-3).
 //
-// splatShaders(layout) -> {vertex, fragment}: one instanced quad per Gaussian (in the sorted order the
-//   worker made), time evaluation on the GPU (temporal opacity, position and rotation polynomials, the
-//   full model's time features, the sh colour for the view), the EWA footprint of section 3 (near
-//   plane, Jacobian clamp or fisheye Jacobian, blur, 3-sigma radius), and the per-pixel alpha of section 3
+// splatShaders(kind, layout) -> {points, project, quad}: per Gaussian (in the sorted order the worker
+//   made) time evaluation on the GPU (temporal opacity, position and rotation polynomials, the full
+//   model's time features, the sh colour for the view), the EWA footprint of section 3 (near plane,
+//   Jacobian clamp or fisheye Jacobian, blur, 3-sigma radius), and the per-pixel alpha of section 3
 //   written premultiplied into float render targets (3 channels + alpha per target; 3 targets for the
-//   9 features of a full model). Blending is front to back: ONE_MINUS_DST_ALPHA, ONE.
+//   9 features of a full model). Blending is front to back: ONE_MINUS_DST_ALPHA, ONE. `points`: one
+//   pass, one point sprite per Gaussian, projected by its vertex shader (where the image fits the
+//   largest point size); else `project` writes one record per Gaussian (transform feedback) and
+//   `quad` draws one quad per record.
 // colourShaders(kind, mlp) -> {vertex, fragment}: one pass over the image: lite and sh clamp the splatted
 //   colour; full runs the decoder MLP per pixel on [F[3:9], camera centre, the pixel centre's world ray].
 // crossfadeShaders() -> {vertex, fragment}: inside a crossfade (1.3), (1 - w) A + w B of the two
@@ -72,14 +75,26 @@ function shColour(L) {
   v_f0 = max(vec3(${sum(0)}, ${sum(1)}, ${sum(2)}) + 0.5, 0.0);`;
 }
 
-/** The splatting program for segments of this layout and model kind. */
+// What the point sprites' vertex shader hands the fragment shader (the quads' names, with a "_" after
+// the features, which the projection already names).
+const FLAT_OUT = `flat out vec2 v_mu;
+flat out vec3 v_conic;
+flat out float v_opacity;
+flat out vec2 v_half;
+flat out vec3 v_f0_;
+flat out vec3 v_f1_;
+flat out vec3 v_f2_;`;
+
+/** The splatting programs for segments of this layout and model kind. */
 export function splatShaders(kind, L) {
   const full = kind === "full";
   const features = kind === "sh" ? shColour(L) : `
   v_f0 = vec3(${f(L.features)}, ${f(L.features + 1)}, ${f(L.features + 2)});${full ? `
   v_f1 = vec3(${f(L.features + 3)}, ${f(L.features + 4)}, ${f(L.features + 5)});
   v_f2 = dt * vec3(${f(L.features + 6)}, ${f(L.features + 7)}, ${f(L.features + 8)});` : ""}`;
-  const project = `#version 300 es
+  // The projection, as a transform-feedback pass writing one record per Gaussian ("feedback": the
+  // quads read them), or as the vertex shader of one point sprite per Gaussian ("points").
+  const projection = (mode) => `#version 300 es
 precision highp float;
 precision highp int;
 precision highp sampler2D;
@@ -87,14 +102,19 @@ uniform sampler2D u_data;
 uniform float u_tau;
 ${CAMERA_UNIFORMS}
 in uint a_index;
-out vec4 g_shape;   // 2D mean (pixels), half extents of the footprint (pixels)
-out vec4 g_conic;   // conic (power = a dx^2 + b dx dy + c dy^2), temporal opacity (0: culled)
-out vec4 g_quad;    // the quad drawn: its first axis (unit) and half lengths along both axes (pixels)
-out vec4 g_f0;      // features 0..2 (w unused)${full ? `
-out vec4 g_f1;
-out vec4 g_f2;` : ""}
+${mode === "feedback" ? "out" : ""} vec4 g_shape;   // 2D mean (pixels), half extents of the footprint (pixels)
+${mode === "feedback" ? "out" : ""} vec4 g_conic;   // conic (power = a dx^2 + b dx dy + c dy^2), temporal opacity (0: culled)
+${mode === "feedback" ? "out" : ""} vec4 g_quad;    // the quad drawn: its first axis (unit) and half lengths along both axes (pixels)
+${mode === "feedback" ? "out" : ""} vec4 g_f0;      // features 0..2 (w unused)${full ? `
+${mode === "feedback" ? "out" : ""} vec4 g_f1;
+${mode === "feedback" ? "out" : ""} vec4 g_f2;` : ""}${mode === "points" ? `
+${FLAT_OUT}` : ""}
 const int T = ${L.texels};
-void cull() { g_shape = vec4(0.0); g_conic = vec4(0.0); g_quad = vec4(0.0); g_f0 = vec4(0.0);${full ? " g_f1 = vec4(0.0); g_f2 = vec4(0.0);" : ""} }
+void cull() {
+  g_shape = vec4(0.0); g_conic = vec4(0.0); g_quad = vec4(0.0); g_f0 = vec4(0.0);${full ? " g_f1 = vec4(0.0); g_f2 = vec4(0.0);" : ""}${mode === "points" ? `
+  gl_Position = vec4(0.0, 0.0, 2.0, 1.0);  // outside the clip volume: not drawn
+  gl_PointSize = 1.0;` : ""}
+}
 void main() {
   vec3 v_f0, v_f1, v_f2;
   int base = int(a_index) * T;
@@ -160,8 +180,24 @@ ${Array.from({ length: L.texels }, (_, k) => `  vec4 d${k} = texelFetch(u_data, 
   g_quad = e.x * e.y < h.x * h.y ? vec4(axis, e) : vec4(1.0, 0.0, h);
   g_f0 = vec4(v_f0, 0.0);${full ? `
   g_f1 = vec4(v_f1, 0.0);
-  g_f2 = vec4(v_f2, 0.0);` : ""}
+  g_f2 = vec4(v_f2, 0.0);` : ""}${mode === "points" ? `
+  // The point sprite: a square holding the part of the footprint's box inside the image (a point whose
+  // centre lies outside the clip volume is not drawn, so the centre is that part's), 1 pixel wider
+  // than it: every pixel centre of the box lies inside, half a pixel from the edge at least. The
+  // fragment shader tests the box.
+  vec2 lo = max(mu - h, vec2(0.0)), hi = min(mu + h, u_size);
+  if (!(lo.x <= hi.x && lo.y <= hi.y)) { cull(); return; }
+  gl_PointSize = max(hi.x - lo.x, hi.y - lo.y) + 1.0;
+  gl_Position = vec4((lo + hi) / u_size - 1.0, 0.0, 1.0);
+  v_mu = mu;
+  v_half = h;
+  v_conic = g_conic.xyz;
+  v_opacity = o;
+  v_f0_ = v_f0;${full ? `
+  v_f1_ = v_f1;
+  v_f2_ = v_f2;` : ""}` : ""}
 }`;
+  const project = projection("feedback");
   const R = full ? 6 : 4;  // texels per record: shape, conic, quad, features
   const vertex = `#version 300 es
 precision highp float;
@@ -217,7 +253,8 @@ void main() {
   o2 = vec4(v_f2 * alpha, alpha);` : ""}
 }`;
   const varyings = ["g_shape", "g_conic", "g_quad", "g_f0", ...(full ? ["g_f1", "g_f2"] : [])];
-  return { project: { vertex: project, fragment: DISCARD_FRAGMENT, varyings }, quad: { vertex, fragment }, recordTexels: R };
+  return { project: { vertex: project, fragment: DISCARD_FRAGMENT, varyings }, quad: { vertex, fragment }, recordTexels: R,
+    points: { vertex: projection("points"), fragment: fragment.replace(/v_f([012])\b/g, "v_f$1_") } };
 }
 
 const DISCARD_FRAGMENT = `#version 300 es

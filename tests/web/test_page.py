@@ -87,21 +87,28 @@ def times(player: Player) -> list[float]:
     return out
 
 
+@pytest.mark.parametrize("path", ["points", "quads"])
 @pytest.mark.parametrize("name", NAMES)
-def test_vector_matches_the_player(site, browser, name):
+def test_vector_matches_the_player(site, browser, name, path):
+    """Both splatting paths of renderer.js: point sprites (where the image fits the largest point
+    size, as here) and the records with quads (else)."""
     folder, url = site
     player = Player(VECTORS / f"{name}.stg", device="cpu")
     open_model(browser, url, f"{name}.stg")
+    browser.execute_script("window.stg.player.renderer.usePoints = arguments[0]", path == "points")
     target = player.model.segments[0].position[:, 0].mean(axis=0)
     values = []
     for camera in views(player.cameras[0], target):
+        fits = browser.execute_script("return window.stg.player.renderer.pointsFit(arguments[0], arguments[1])",
+                                      camera.width, camera.height)
+        assert fits == (path == "points")
         for t in times(player):
             image = page.snapshot(browser, camera.to_dict(), t)
             assert image.shape == (camera.height, camera.width, 4)
             reference = player.render(camera, t)
             assert reference.std() > 0.01  # something to see
             values.append(page.psnr(image[..., :3], reference))
-    print(f"\n{name}: PSNR {min(values):.2f} .. {max(values):.2f} dB over {len(values)} views")
+    print(f"\n{name} ({path}): PSNR {min(values):.2f} .. {max(values):.2f} dB over {len(values)} views")
     assert min(values) >= MIN_PSNR, values
 
 
