@@ -24,13 +24,16 @@ import numpy as np
 
 from stg_runtime.camera import Camera
 
+from .gauge import corrections_between, gauge_part
+
 
 @dataclass(frozen=True)
 class CaptureModel:
     """Knobs of a realistic capture (0 turns an effect off).
 
     gain: standard deviation of the per-camera exposure, in stops (log2 of the gain);
-    white_balance: standard deviation of the per-channel gains around 1 (a ratio);
+    white_balance: standard deviation of the per-channel gains around 1 (a ratio); both are then
+    normalised to a mean of 1 over the cameras unless there is a reference camera (draw);
     vignetting: brightness lost at the image corners (0.3: 30 % darker there);
     noise: standard deviation of the sensor noise, in [0, 1] units of the 8-bit range;
     rotation_deg, translation: size of the pose error (degrees; world units);
@@ -47,20 +50,29 @@ class CaptureModel:
     reference_camera: int = -1
 
     def draw(self, num_cameras: int) -> list["CameraEffects"]:
-        """One CameraEffects per camera, from `seed`."""
+        """One CameraEffects per camera, from `seed`. Without a reference camera the exposures and the
+        white balances are divided by their means over the cameras: only colours relative to the
+        rig's mean can be recovered from its pictures (a factor shared by every camera belongs to the
+        scene), so the clean capture is the rig's mean response."""
         rng = np.random.default_rng(self.seed)
+        gains, balances, axes, directions = [], [], [], []
+        for _ in range(num_cameras):
+            gains.append(float(2.0 ** rng.normal(0.0, self.gain)) if self.gain else 1.0)
+            balances.append(np.clip(1.0 + rng.normal(0.0, self.white_balance, 3), 0.5, 1.5)
+                            if self.white_balance else np.ones(3))
+            axes.append(rng.normal(size=3))
+            directions.append(rng.normal(size=3))
+        gains, balances = np.asarray(gains), np.asarray(balances)
+        if self.reference_camera < 0:
+            gains, balances = gains / gains.mean(), balances / balances.mean(0)
         effects = []
         for ci in range(num_cameras):
-            gain = float(2.0 ** rng.normal(0.0, self.gain)) if self.gain else 1.0
-            balance = np.clip(1.0 + rng.normal(0.0, self.white_balance, 3), 0.5, 1.5) if self.white_balance else np.ones(3)
-            axis = rng.normal(size=3)
-            direction = rng.normal(size=3)
             exact = ci == self.reference_camera
             effects.append(CameraEffects(
-                gain=1.0 if exact else gain, white_balance=np.ones(3) if exact else balance,
+                gain=1.0 if exact else float(gains[ci]), white_balance=np.ones(3) if exact else balances[ci],
                 vignetting=self.vignetting, noise=self.noise,
-                rotation=np.zeros(3) if exact else axis / np.linalg.norm(axis) * np.radians(self.rotation_deg),
-                translation=np.zeros(3) if exact else direction / np.linalg.norm(direction) * self.translation,
+                rotation=np.zeros(3) if exact else axes[ci] / np.linalg.norm(axes[ci]) * np.radians(self.rotation_deg),
+                translation=np.zeros(3) if exact else directions[ci] / np.linalg.norm(directions[ci]) * self.translation,
                 seed=self.seed * 100003 + ci))
         return effects
 
@@ -157,7 +169,9 @@ def pose_errors(cameras, record: dict, names=None) -> dict:
     """Pose errors of `cameras` against a capture record's truth (capture_record), matched by name, over
     the cameras named in `names` (default: all that the record has): "rotation_deg" and "translation"
     (means over those cameras), "max_rotation_deg", "max_translation", "cameras" (name -> (degrees,
-    distance))."""
+    distance)); with three cameras or more also "aligned_rotation_deg" and "aligned_translation": the
+    means once the part of the errors that moves the whole rig alike (a similarity of the world, which
+    pictures cannot reveal: stg_train.gauge) is removed, to first order."""
     truth = {c["name"]: c["true_world_to_camera"] for c in record["cameras"]}
     chosen = [c for c in cameras if c.name in truth and (names is None or c.name in names)]
     if not chosen:
@@ -165,5 +179,12 @@ def pose_errors(cameras, record: dict, names=None) -> dict:
     each = {c.name: pose_error(c, truth[c.name]) for c in chosen}
     rot = [v[0] for v in each.values()]
     dist = [v[1] for v in each.values()]
-    return {"rotation_deg": float(np.mean(rot)), "translation": float(np.mean(dist)),
-            "max_rotation_deg": float(np.max(rot)), "max_translation": float(np.max(dist)), "cameras": each}
+    out = {"rotation_deg": float(np.mean(rot)), "translation": float(np.mean(dist)),
+           "max_rotation_deg": float(np.max(rot)), "max_translation": float(np.max(dist)), "cameras": each}
+    if len(chosen) >= 3:
+        reference = np.stack([np.asarray(truth[c.name], np.float64) for c in chosen])
+        w, t = corrections_between(np.stack([np.asarray(c.world_to_camera, np.float64) for c in chosen]), reference)
+        gw, gt = gauge_part(reference, w, t)
+        out["aligned_rotation_deg"] = float(np.degrees(np.linalg.norm(w - gw, axis=1)).mean())
+        out["aligned_translation"] = float(np.linalg.norm(t - gt, axis=1).mean())
+    return out

@@ -323,11 +323,17 @@ def _refined_cameras(trainer: Trainer, out: Path, quiet: bool) -> dict:
     names = [ds.cameras[i].name for i in ds.train_cameras]
     stated, refined = pose_errors(ds.cameras, record, names), pose_errors(cameras, record, names)
     if not quiet:
+        aligned = "" if "aligned_rotation_deg" not in stated else (
+            f"; with the rig's common similarity removed, rotation {stated['aligned_rotation_deg']:.3f} -> "
+            f"{refined['aligned_rotation_deg']:.3f} degrees, position {stated['aligned_translation']:.4g} -> "
+            f"{refined['aligned_translation']:.4g}")
         print(f"stg-train: pose error of the training cameras against {ds.path}/scene.json's truth: rotation "
               f"{stated['rotation_deg']:.3f} -> {refined['rotation_deg']:.3f} degrees, position {stated['translation']:.4g} "
-              f"-> {refined['translation']:.4g} (means; stated -> refined)", file=sys.stderr)
-    keep = ("rotation_deg", "translation", "max_rotation_deg", "max_translation")
-    return {"pose_error": {"stated": {k: stated[k] for k in keep}, "refined": {k: refined[k] for k in keep}}}
+              f"-> {refined['translation']:.4g} (means; stated -> refined){aligned}", file=sys.stderr)
+    keep = ("rotation_deg", "translation", "max_rotation_deg", "max_translation", "aligned_rotation_deg",
+            "aligned_translation")
+    return {"pose_error": {"stated": {k: stated[k] for k in keep if k in stated},
+                           "refined": {k: refined[k] for k in keep if k in refined}}}
 
 
 def train_segments(dataset, out, config: TrainConfig, segment_frames: int, indices: Sequence[int] | None = None,

@@ -9,8 +9,13 @@ A_c = W^-1 D_c W with the stated camera W gives the refined camera's picture of 
 means x -> A_c x, rotations q -> q_A (x) q (wxyz, q_A the quaternion of A_c's rotation), scales,
 opacities and features unchanged; the decoder's view inputs become the refined camera's centre and rays
 (A_c^-1 applied to the stated ones). w_c and t_c start at 0; cameras that are not trained (held out)
-keep their stated pose. After every step the corrections' mean over the training cameras is projected
-to zero (`center`), which holds the scene where the stated poses put it on average.
+keep their stated pose.
+
+After every step `center` removes from the corrections their part that is a similarity of the whole
+world (stg_train.gauge): seven freedoms that pictures cannot reveal, in which the corrections would
+otherwise drift and take the scene with them (a drift in scale, invisible to the training cameras,
+moves the picture of a view away from the rig). The scene stays where the stated poses put it, at their
+scale.
 """
 from __future__ import annotations
 
@@ -21,6 +26,8 @@ import torch
 from torch import Tensor
 
 from stg_runtime.camera import Camera
+
+from .gauge import gauge_part
 
 #: Adam learning rates of the pose corrections (per step; decayed with the run, see Trainer): rotation in
 #: radians, translation in units of the scene extent (params.extent_of).
@@ -64,10 +71,14 @@ class PoseCorrections:
     the translation's parameter unit in world units (the scene extent), so one learning rate fits any
     scene."""
 
-    def __init__(self, train_cameras, device, scale: float = 1.0):
+    def __init__(self, train_cameras, device, scale: float = 1.0, cameras: list[Camera] | None = None):
+        """cameras: the dataset's stated cameras (indexed like it), which `center` needs to find the
+        gauge in world coordinates; without them it only removes the corrections' mean."""
         self.train_cameras = [int(c) for c in train_cameras]
         self.device = torch.device(device)
         self.scale = float(scale)
+        self._stated = None if cameras is None else np.stack(
+            [np.asarray(cameras[c].world_to_camera, np.float64) for c in self.train_cameras])
         self.rotation = {c: torch.zeros(3, device=self.device, requires_grad=True) for c in self.train_cameras}
         self.translation = {c: torch.zeros(3, device=self.device, requires_grad=True) for c in self.train_cameras}
 
@@ -101,14 +112,24 @@ class PoseCorrections:
 
     @torch.no_grad()
     def center(self) -> None:
-        """Project the corrections so that their mean over the training cameras is zero: a correction
-        shared by every camera is a motion of the whole scene (the gauge), which the data cannot fix."""
+        """Project the gauge out of the corrections (module docstring): a similarity shared by every
+        camera is a motion of the whole scene, which the data cannot fix. Without the stated cameras,
+        only the mean correction (camera coordinates) is removed."""
         if not self.train_cameras:
             return
-        for values in (self.rotation, self.translation):
-            mean = torch.stack(list(values.values())).mean(0)
-            for c in self.train_cameras:
-                values[c].sub_(mean)
+        if self._stated is None:
+            for values in (self.rotation, self.translation):
+                mean = torch.stack(list(values.values())).mean(0)
+                for c in self.train_cameras:
+                    values[c].sub_(mean)
+            return
+        w = torch.stack([self.rotation[c] for c in self.train_cameras]).double().cpu().numpy()
+        t = torch.stack([self.translation[c] for c in self.train_cameras]).double().cpu().numpy() * self.scale
+        dw, dt = gauge_part(self._stated, w, t)
+        for i, c in enumerate(self.train_cameras):
+            self.rotation[c].sub_(torch.as_tensor(dw[i], dtype=self.rotation[c].dtype, device=self.device))
+            self.translation[c].sub_(torch.as_tensor(dt[i] / self.scale, dtype=self.translation[c].dtype,
+                                                     device=self.device))
 
     @torch.no_grad()
     def refined(self, cameras: list[Camera]) -> list[Camera]:
@@ -133,3 +154,4 @@ class PoseCorrections:
             for i, c in enumerate(self.train_cameras):
                 self.rotation[c].copy_(state["rotation"][i])
                 self.translation[c].copy_(state["translation"][i])
+

@@ -1,0 +1,60 @@
+"""The gauge of a camera rig: a similarity of the whole world (a small turn, shift and change of scale)
+applied to the scene and to every camera alike leaves every picture unchanged, so poses estimated from
+pictures alone are defined only up to it. `gauge_part` finds that part of small pose corrections, to be
+removed by pose refinement (stg_train.pose_refine) and before pose errors are compared with a known
+truth (stg_train.capture.pose_errors).
+
+Conventions (formats/stg-v1.md): world_to_camera (4, 4), OpenCV; a correction of camera c is the rigid
+D_c = [exp([w_c]x) | t_c] applied in camera coordinates (corrected camera D_c W_c), w_c axis-angle in
+radians, t_c in world units. To first order its camera frame turns by a_c = -R_c^T w_c in world
+coordinates and its centre moves by dC_c = -R_c^T t_c. A similarity (turn omega, relative scale sigma,
+shift tau) about the rig's mean centre m moves them by a_c = omega, dC_c = omega x (C_c - m) +
+sigma (C_c - m) + tau.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+def _cross_matrix(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def gauge_part(world_to_camera: np.ndarray, rotation: np.ndarray, translation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The part of small pose corrections that is a similarity of the whole world (module docstring):
+    (rotation (K, 3), translation (K, 3)) to subtract from the corrections rotation (K, 3) axis-angle
+    radians and translation (K, 3) world units, both in camera coordinates, of K cameras with stated
+    world_to_camera (K, 4, 4). Least squares over the K cameras, first order in the corrections."""
+    r = world_to_camera[:, :3, :3]
+    centres = -np.einsum("kji,kj->ki", r, world_to_camera[:, :3, 3])
+    d = centres - centres.mean(0)
+    radius = float(np.sqrt((d * d).sum(1).mean()))
+    weight = radius if radius > 1e-9 else 1.0
+    turn = -np.einsum("kji,kj->ki", r, rotation)      # a_c = -R_c^T w_c
+    move = -np.einsum("kji,kj->ki", r, translation)   # dC_c = -R_c^T t_c
+    rows, rhs = [], []
+    for k in range(len(r)):
+        rows.append(np.hstack([weight * np.eye(3), np.zeros((3, 1)), np.zeros((3, 3))]))
+        rhs.append(weight * turn[k])
+        rows.append(np.hstack([-_cross_matrix(d[k]), d[k][:, None], np.eye(3)]))
+        rhs.append(move[k])
+    x = np.linalg.lstsq(np.vstack(rows), np.concatenate(rhs), rcond=None)[0]
+    omega, sigma, tau = x[:3], x[3], x[4:]
+    gauge_move = np.cross(omega, d) + sigma * d + tau
+    # back to camera coordinates: w_c = -R_c a_c, t_c = -R_c dC_c
+    return -np.einsum("kij,j->ki", r, omega), -np.einsum("kij,kj->ki", r, gauge_move)
+
+
+def rotation_vector(rotation: np.ndarray) -> np.ndarray:
+    """(3,) axis-angle (radians) of a (3, 3) rotation matrix (angles below pi)."""
+    vee = 0.5 * np.array([rotation[2, 1] - rotation[1, 2], rotation[0, 2] - rotation[2, 0],
+                          rotation[1, 0] - rotation[0, 1]])
+    angle = float(np.arccos(np.clip((np.trace(rotation) - 1.0) / 2.0, -1.0, 1.0)))
+    return vee if angle < 1e-8 else vee * (angle / np.sin(angle))
+
+
+def corrections_between(estimated: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(rotation (K, 3), translation (K, 3)): the corrections D_c (module docstring) that take the
+    reference world_to_camera (K, 4, 4) to the estimated ones (K, 4, 4): estimated = D_c reference."""
+    delta = np.einsum("kij,kjl->kil", estimated, np.linalg.inv(reference))
+    return np.stack([rotation_vector(d[:3, :3]) for d in delta]), delta[:, :3, 3].copy()
