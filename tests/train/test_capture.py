@@ -52,6 +52,17 @@ def test_the_pose_error_has_the_stated_size():
         assert np.linalg.norm(wrong.center - cam.center) == pytest.approx(0.02, abs=1e-9)
 
 
+def test_the_rig_s_mean_exposure_and_white_balance_are_one():
+    effects = CaptureModel(gain=0.4, white_balance=0.1, seed=4).draw(7)
+    gains = np.array([e.gain for e in effects])
+    balances = np.array([e.white_balance for e in effects])
+    assert gains.mean() == pytest.approx(1.0) and np.std(np.log2(gains)) > 0.1  # spread kept, mean divided out
+    np.testing.assert_allclose(balances.mean(0), 1.0)
+    # with a reference camera, that camera is the truth and nothing is divided
+    referenced = CaptureModel(gain=0.4, white_balance=0.1, seed=4, reference_camera=2).draw(7)
+    assert referenced[2].gain == 1.0 and referenced[0].gain == pytest.approx(2.0 ** np.random.default_rng(4).normal(0, 0.4))
+
+
 def test_a_realistic_n3v_capture_records_its_truth(tmp_path):
     model = CaptureModel(seed=1, reference_camera=0)
     cams = write_n3v(tmp_path, SyntheticScene(seed=0, duration=1.0), num_cameras=3, num_frames=1, fps=1,
