@@ -14,7 +14,8 @@ refined.
                               [--data DIR] [--json PATH]
 
 Variants: plain (neither), appearance, pose (pose_refine), both, colour (appearance without its
-vignetting term). Each seed is one realistic capture
+vignetting term), known (both, with the capture's true vignetting given as TrainConfig.lens_falloff, as
+a flat-field calibration would give it). Each seed is one realistic capture
 (CaptureModel(seed=SEED), the knobs' defaults unless --capture changes them, e.g. --capture noise=0)
 and the training seed; the scene is the demo's (12 cameras x 30 frames at 160x120 by default). Training
 reads the lossless PNG frames of either capture. The defaults train with TrainConfig's defaults (3000
@@ -44,7 +45,8 @@ from stg_train.trainer import Trainer, TrainConfig
 
 VARIANTS = {"plain": {}, "appearance": {"appearance": True}, "pose": {"pose_refine": True},
             "both": {"appearance": True, "pose_refine": True},
-            "colour": {"appearance": True, "appearance_vignetting": False}}
+            "colour": {"appearance": True, "appearance_vignetting": False},
+            "known": {"appearance": True, "pose_refine": True, "lens_falloff": "capture"}}
 
 
 def parse_setting(text: str) -> tuple[str, object]:
@@ -60,11 +62,14 @@ def parse_setting(text: str) -> tuple[str, object]:
 
 def write_captures(root: Path, size: dict, capture: CaptureModel) -> tuple[Path, Path, SyntheticScene]:
     """(clean folder, realistic folder, scene): the demo scene written cleanly and through `capture`
-    (each once: kept when there)."""
+    (each once: kept when there; the realistic folder is named by the seed and by the knobs changed from
+    their defaults)."""
     scene = SyntheticScene(seed=0, duration=size["frames"] / size["fps"])
     common = dict(num_cameras=size["cameras"], num_frames=size["frames"], fps=size["fps"], width=size["width"],
                   height=size["height"])
-    clean, real = root / "clean", root / f"realistic-{capture.seed}"
+    changed = {k: v for k, v in capture.settings().items() if k != "seed" and v != getattr(CaptureModel(), k)}
+    tag = "".join(f"-{k}{v:g}" for k, v in sorted(changed.items()))
+    clean, real = root / "clean", root / f"realistic-{capture.seed}{tag}"
     if not (clean / "scene.json").exists():
         write_n3v(clean, scene, **common)
     if not (real / "scene.json").exists():
@@ -133,8 +138,11 @@ def main() -> None:
             data = load_n3v(clean_dir if capture_name == "clean" else real_dir, prefer_png=True)
             names = [data.cameras[i].name for i in data.train_cameras]
             for variant in args.variants.split(","):
-                config = TrainConfig(iterations=args.iterations, num_points=args.points, seed=seed,
-                                     **{**settings, **VARIANTS[variant]})
+                chosen = {**settings, **VARIANTS[variant]}
+                if chosen.get("lens_falloff") == "capture":  # the capture's own vignetting, as calibrated
+                    vignetting = capture.vignetting if capture_name == "realistic" else 0.0
+                    chosen["lens_falloff"] = (-vignetting, 0.0) if vignetting else None
+                config = TrainConfig(iterations=args.iterations, num_points=args.points, seed=seed, **chosen)
                 start = time.perf_counter()
                 trainer = Trainer(data, config)
                 trainer.train(progress=False)
@@ -151,12 +159,15 @@ def main() -> None:
                 if capture_name == "realistic":
                     for key, cams in (("pose_stated", data.cameras), ("pose_refined", trainer.refined_cameras())):
                         e = pose_errors(cams, record, names)
-                        row[key] = (e["rotation_deg"], e["translation"])
+                        row[key] = (e["rotation_deg"], e["translation"], e.get("aligned_rotation_deg"),
+                                    e.get("aligned_translation"))
                 results.append(row)
                 figures = "  ".join(f"{v}: {p:.2f} / {a:.2f} dB" for v, (p, a) in row["views"].items())
                 pose = "" if "pose_refined" not in row else (
                     f"  pose error {row['pose_stated'][0]:.3f} deg {row['pose_stated'][1]:.4f} -> "
-                    f"{row['pose_refined'][0]:.3f} deg {row['pose_refined'][1]:.4f}")
+                    f"{row['pose_refined'][0]:.3f} deg {row['pose_refined'][1]:.4f} (gauge removed: "
+                    f"{row['pose_stated'][2]:.3f} deg {row['pose_stated'][3]:.4f} -> "
+                    f"{row['pose_refined'][2]:.3f} deg {row['pose_refined'][3]:.4f})")
                 extra = "".join(f"  {k} {np.round(row[k], 4).tolist()}" for k in ("vignetting", "correction") if k in row)
                 print(f"seed {seed} {capture_name:9s} {variant:10s} {figures}{pose}{extra}  ({row['gaussians']} Gaussians, "
                       f"{row['seconds']:.0f} s)", flush=True)

@@ -45,7 +45,9 @@ class TrainConfig:
     (stg_train.strategy.rotation, at Schedule.separate_at); appearance: a learned colour transform per
     training camera (and, with appearance_vignetting, a radial falloff) applied to its renders before
     the loss only (stg_train.appearance); pose_refine: a learned rigid correction of each training
-    camera's pose (stg_train.pose_refine); camera_learning_rates: overrides of their rates (keys
+    camera's pose (stg_train.pose_refine); lens_falloff: the training cameras' known vignetting
+    (k1, k2), e.g. from a flat-field calibration, applied to their renders before the loss as
+    1 + k1 s + k2 s^2 (appearance.radial's s), when the appearance then learns none; camera_learning_rates: overrides of their rates (keys
     "matrix", "bias", "vignetting" of appearance.APPEARANCE_LR, "rotation", "translation" of
     pose_refine.POSE_LR); segment_context: for a video trained in segments, how many neighbouring
     frames on each side a segment is also fitted to (as context: it shows only its own frames, and the
@@ -80,6 +82,7 @@ class TrainConfig:
     appearance: bool = False
     appearance_vignetting: bool = True
     pose_refine: bool = False
+    lens_falloff: tuple | None = None
     camera_learning_rates: dict = field(default_factory=dict)
     segment_context: int = 2
     edge_weight: float = 1.0

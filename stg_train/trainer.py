@@ -25,7 +25,7 @@ from stg_runtime.atomic import atomic_output, remove_leftovers
 from stg_runtime.camera import Camera
 from stg_runtime.progress import Progress
 
-from .appearance import CameraAppearance
+from .appearance import CameraAppearance, radial
 from .data.flow import initial_velocity
 from .config import MOTION_INITS, TrainConfig  # noqa: F401 (TrainConfig's home is config; re-exported)
 from .data.points import InitialPoints, initial_points
@@ -148,12 +148,14 @@ class Trainer:
         """self.appearance / self.poses (None when off) and their own Adam, self.camera_optimizer."""
         cfg, ds = self.config, self.dataset
         self.appearance = self.poses = self.camera_optimizer = None
+        self._falloffs: dict[int, Tensor] = {}
         groups = []
         if cfg.appearance:
-            self.appearance = CameraAppearance(len(ds.cameras), ds.train_cameras, self.device, cfg.appearance_vignetting)
+            self.appearance = CameraAppearance(len(ds.cameras), ds.train_cameras, self.device,
+                                               cfg.appearance_vignetting and cfg.lens_falloff is None)
             groups += self.appearance.param_groups(cfg.camera_learning_rates)
         if cfg.pose_refine:
-            self.poses = PoseCorrections(ds.train_cameras, self.device, scale=self.extent)
+            self.poses = PoseCorrections(ds.train_cameras, self.device, scale=self.extent, cameras=ds.cameras)
             groups += self.poses.param_groups(cfg.camera_learning_rates)
         if groups:
             for group in groups:
@@ -170,6 +172,14 @@ class Trainer:
         if self.camera_optimizer is not None and saved is not None and \
                 len(saved["param_groups"]) == len(self.camera_optimizer.param_groups):
             self.camera_optimizer.load_state_dict(saved)
+
+    def _lens_falloff(self, camera_index: int) -> Tensor:
+        """(H, W) known vignetting of a training camera (TrainConfig.lens_falloff), cached."""
+        if camera_index not in self._falloffs:
+            k1, k2 = (list(self.config.lens_falloff) + [0.0, 0.0])[:2]
+            s = radial(self.dataset.cameras[camera_index], self.device)
+            self._falloffs[camera_index] = 1.0 + float(k1) * s + float(k2) * s * s
+        return self._falloffs[camera_index]
 
     def refined_cameras(self) -> list[Camera]:
         """The dataset's cameras, the training cameras' poses refined when pose_refine is on."""
@@ -251,6 +261,8 @@ class Trainer:
             rgb, out = self.render(ds.cameras[ci], tau, g, rays)
             if self.appearance is not None:
                 rgb = self.appearance.apply(rgb, ci, ds.cameras[ci])
+            if cfg.lens_falloff is not None:
+                rgb = rgb * self._lens_falloff(ci)[..., None]
             images.append(rgb)
             renders.append((ds.cameras[ci], out))
         img = torch.stack(images)

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import shlex
 import sys
 import time
@@ -58,12 +59,28 @@ def _segment_list(text: str) -> list[int]:
         raise argparse.ArgumentTypeError(str(e)) from None
 
 
+def _lens_falloff(text: str) -> tuple[float, float]:
+    """K1[,K2] -> (k1, k2), refused unless the brightness 1 + k1 s + k2 s^2 stays within (0, 2] for s in [0, 1]."""
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected K1 or K1,K2 (numbers), got {text!r}") from None
+    if not 1 <= len(values) <= 2 or not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(f"expected K1 or K1,K2 (finite numbers), got {text!r}")
+    k1, k2 = (values + [0.0])[:2]
+    brightness = [1 + k1 * s + k2 * s * s for s in (i / 100 for i in range(101))]
+    if min(brightness) <= 0 or max(brightness) > 2:
+        raise argparse.ArgumentTypeError(f"the brightness 1 + K1 s + K2 s^2 must stay within (0, 2] for s in "
+                                         f"[0, 1]; {text!r} gives {min(brightness):.3g} .. {max(brightness):.3g}")
+    return (k1, k2)
+
+
 #: TrainConfig field -> the option that sets it (what a resumed run names when it refuses or applies one).
 CONFIG_OPTIONS = {"model": "--model", "iterations": "--iterations", "batch": "--batch", "num_points": "--points",
                   "init": "--init", "init_every": "--init-every", "motion_init": "--motion-init", "seed": "--seed",
                   "checkpoint_every": "--checkpoint-every", "guided": "--no-guided", "device": "--device",
                   "splatter": "--splatter", "appearance": "--appearance", "pose_refine": "--pose-refine",
-                  "segment_context": "--segment-context"}
+                  "segment_context": "--segment-context", "lens_falloff": "--lens-falloff"}
 #: argparse dest -> TrainConfig field, where they differ.
 _DEST_FIELDS = {"points": "num_points", "no_guided": "guided"}
 
@@ -166,6 +183,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="refine each training camera's pose (a small rotation and translation) with the scene; "
                         "writes OUT/refined_cameras.json, and the .stg stores the refined cameras (off by "
                         "default; docs/training.md)")
+    p.add_argument("--lens-falloff", type=_lens_falloff, default=d.lens_falloff, metavar="K1[,K2]",
+                   help="the cameras' known vignetting, e.g. from a flat-field calibration or the lens profile: "
+                        "brightness 1 + K1 s + K2 s^2, s the squared distance from the principal point over its "
+                        "value at the farthest corner (-0.3: 30 %% darker at the corners), applied to every "
+                        "training render before the loss, so the .stg holds the scene without it; with "
+                        "--appearance, no vignetting is learned then; write --lens-falloff=-0.3,0.05 when K1 is negative "
+                        "and K2 given (default: none; docs/training.md)")
     p.add_argument("--viewer", nargs="?", type=port, const=8080, default=None, metavar="PORT",
                    help="show the model in the browser while it trains, at http://127.0.0.1:PORT (default "
                         "8080; needs the viewer extra): the current parameters every few seconds, and the "
@@ -187,6 +211,7 @@ def _config(args, splatter: str) -> TrainConfig:
     base.motion_init = args.motion_init
     base.appearance, base.pose_refine = args.appearance, args.pose_refine
     base.segment_context = args.segment_context
+    base.lens_falloff = args.lens_falloff
     if args.iterations:
         base.iterations = args.iterations
     if args.points:

@@ -107,6 +107,30 @@ def _render(g: Gaussians, camera: Camera):
     return rasterize(g.means, g.quats, g.scales, g.opacities, g.features, camera, backend="numba").features
 
 
+def test_a_known_lens_falloff_keeps_the_vignetting_out_of_the_scene(tmp_path):
+    vignetting = CaptureModel(gain=0, white_balance=0, vignetting=0.4, noise=0, rotation_deg=0, translation=0)
+    scene = SyntheticScene(seed=0, duration=SCENE["num_frames"] / SCENE["fps"])
+    write_n3v(tmp_path, scene, capture=vignetting, **SCENE)
+    dataset = load_n3v(tmp_path, prefer_png=True)
+    cam = dataset.cameras[dataset.test_cameras[0]]
+    rim = np.zeros((cam.height, cam.width), bool)
+    rim[:4], rim[-4:], rim[:, :4], rim[:, -4:] = True, True, True, True
+    centre = np.zeros_like(rim)
+    centre[12:24, 16:32] = True
+
+    def rim_over_centre(config):  # the canonical render's brightness relative to the clean scene's
+        trainer = Trainer(dataset, TrainConfig(**TRAIN, **config))
+        trainer.train(progress=False)
+        ratios = [trainer.render_numpy(cam, j / SCENE["num_frames"]).sum(-1) /
+                  np.maximum(scene.render(cam, j / SCENE["fps"]).sum(-1), 0.05) for j in range(0, 6, 2)]
+        return float(np.median([r[rim].mean() / r[centre].mean() for r in ratios]))
+
+    known, learned_by_scene = rim_over_centre({"lens_falloff": (-0.4, 0.0)}), rim_over_centre({})
+    print(f"rim / centre brightness against the clean scene: {known:.3f} with the falloff given, "
+          f"{learned_by_scene:.3f} without")
+    assert known > 0.93 and learned_by_scene < 0.88
+
+
 def test_the_transform_of_the_means_renders_the_corrected_camera():
     g = _random_gaussians(2000)
     stated = Camera(57.6, 57.6, 32, 24, 64, 48, np.eye(4), name="c")
