@@ -15,7 +15,8 @@ refined.
 
 Variants: plain (neither), appearance, pose (pose_refine), both, colour (appearance without its
 vignetting term), known (both, with the capture's true vignetting given as TrainConfig.lens_falloff, as
-a flat-field calibration would give it), known-appearance (the same without pose refinement). Each seed is one realistic capture
+a flat-field calibration would give it), known-appearance (the same without pose refinement). Each seed
+is one realistic capture
 (CaptureModel(seed=SEED), the knobs' defaults unless --capture changes them, e.g. --capture noise=0)
 and the training seed; the scene is the demo's (12 cameras x 30 frames at 160x120 by default). Training
 reads the lossless PNG frames of either capture. The defaults train with TrainConfig's defaults (3000

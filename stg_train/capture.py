@@ -71,8 +71,10 @@ class CaptureModel:
             effects.append(CameraEffects(
                 gain=1.0 if exact else float(gains[ci]), white_balance=np.ones(3) if exact else balances[ci],
                 vignetting=self.vignetting, noise=self.noise,
-                rotation=np.zeros(3) if exact else axes[ci] / np.linalg.norm(axes[ci]) * np.radians(self.rotation_deg),
-                translation=np.zeros(3) if exact else directions[ci] / np.linalg.norm(directions[ci]) * self.translation,
+                rotation=np.zeros(3) if exact else
+                axes[ci] / np.linalg.norm(axes[ci]) * np.radians(self.rotation_deg),
+                translation=np.zeros(3) if exact else
+                directions[ci] / np.linalg.norm(directions[ci]) * self.translation,
                 seed=self.seed * 100003 + ci))
         return effects
 

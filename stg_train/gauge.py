@@ -20,7 +20,8 @@ def _cross_matrix(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
-def gauge_part(world_to_camera: np.ndarray, rotation: np.ndarray, translation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def gauge_part(world_to_camera: np.ndarray, rotation: np.ndarray,
+               translation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The part of small pose corrections that is a similarity of the whole world (module docstring):
     (rotation (K, 3), translation (K, 3)) to subtract from the corrections rotation (K, 3) axis-angle
     radians and translation (K, 3) world units, both in camera coordinates, of K cameras with stated

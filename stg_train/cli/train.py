@@ -188,8 +188,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "brightness 1 + K1 s + K2 s^2, s the squared distance from the principal point over its "
                         "value at the farthest corner (-0.3: 30 %% darker at the corners), applied to every "
                         "training render before the loss, so the .stg holds the scene without it; with "
-                        "--appearance, no vignetting is learned then; write --lens-falloff=-0.3,0.05 when K1 is negative "
-                        "and K2 given (default: none; docs/training.md)")
+                        "--appearance, no vignetting is learned then; write --lens-falloff=-0.3,0.05 when "
+                        "K1 is negative and K2 given (default: none; docs/training.md)")
     p.add_argument("--viewer", nargs="?", type=port, const=8080, default=None, metavar="PORT",
                    help="show the model in the browser while it trains, at http://127.0.0.1:PORT (default "
                         "8080; needs the viewer extra): the current parameters every few seconds, and the "
