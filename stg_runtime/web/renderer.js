@@ -327,13 +327,7 @@ export class Renderer {
       if (n) {
         gl.enable(gl.BLEND);
         gl.blendFunc(gl.ONE_MINUS_DST_ALPHA, gl.ONE);  // front to back: dst += T src, T = 1 - dst alpha
-        const points = gpu.points;
-        gl.useProgram(points.program);
-        this.setCamera(u, points.uniforms);
-        gl.uniform1f(points.uniforms.u_tau, tau);
-        gl.activeTexture(gl.TEXTURE0);
-        gl.bindTexture(gl.TEXTURE_2D, gpu.texture);
-        gl.uniform1i(points.uniforms.u_data, 0);
+        this.useGaussianProgram(gpu.points, gpu, u, tau);
         gl.bindVertexArray(gpu.projectVao);
         gl.drawArrays(gl.POINTS, 0, n);
         gl.bindVertexArray(null);
@@ -342,13 +336,7 @@ export class Renderer {
       return;
     }
     // 1. time evaluation and footprints, one record per Gaussian in depth order
-    const project = gpu.project;
-    gl.useProgram(project.program);
-    this.setCamera(u, project.uniforms);
-    gl.uniform1f(project.uniforms.u_tau, tau);
-    gl.activeTexture(gl.TEXTURE0);
-    gl.bindTexture(gl.TEXTURE_2D, gpu.texture);
-    gl.uniform1i(project.uniforms.u_data, 0);
+    this.useGaussianProgram(gpu.project, gpu, u, tau);
     if (n) {
       gl.enable(gl.RASTERIZER_DISCARD);
       gl.bindVertexArray(gpu.projectVao);
@@ -378,6 +366,18 @@ export class Renderer {
       gl.bindVertexArray(null);
       gl.disable(gl.BLEND);
     }
+  }
+
+  /** `program` (one that reads the Gaussians: the projection or the point sprites) in use, with the
+   * camera uniforms u, the time tau and `gpu`'s Gaussian texture on unit 0. */
+  useGaussianProgram(program, gpu, u, tau) {
+    const gl = this.gl;
+    gl.useProgram(program.program);
+    this.setCamera(u, program.uniforms);
+    gl.uniform1f(program.uniforms.u_tau, tau);
+    gl.activeTexture(gl.TEXTURE0);
+    gl.bindTexture(gl.TEXTURE_2D, gpu.texture);
+    gl.uniform1i(program.uniforms.u_data, 0);
   }
 
   /** The feature targets t bound (the ones `gpu`'s kind writes) and cleared. */
