@@ -37,6 +37,12 @@ def radial(camera: Camera, device, dtype=torch.float32) -> Tensor:
     return r2 / corner
 
 
+def lens_brightness(s: Tensor, k) -> Tensor:
+    """(H, W) lens brightness 1 + k1 s + k2 s^2 at the radial values s of `radial`, k = (k1, k2)
+    (floats or a differentiable (2,) tensor)."""
+    return 1.0 + k[0] * s + k[1] * s * s
+
+
 class CameraAppearance:
     """Learned colour transform (and vignetting, when `vignetting`) of each camera in `train_cameras`
     (dataset indices) of a dataset with `num_cameras` cameras; other cameras are left as rendered."""
@@ -71,9 +77,7 @@ class CameraAppearance:
         if self.vignetting:
             if camera_index not in self._radial:
                 self._radial[camera_index] = radial(camera, image.device, image.dtype)
-            s = self._radial[camera_index]
-            k = self.falloff[camera_index]
-            out = out * (1.0 + k[0] * s + k[1] * s * s)[..., None]
+            out = out * lens_brightness(self._radial[camera_index], self.falloff[camera_index])[..., None]
         return out
 
     @torch.no_grad()

@@ -73,14 +73,13 @@ class PoseCorrections:
     the translation's parameter unit in world units (the scene extent), so one learning rate fits any
     scene."""
 
-    def __init__(self, train_cameras, device, scale: float = 1.0, cameras: list[Camera] | None = None):
-        """cameras: the dataset's stated cameras (indexed like it), which `center` needs to find the
-        gauge in world coordinates; without them it only removes the corrections' mean."""
+    def __init__(self, train_cameras, cameras: list[Camera], device, scale: float = 1.0):
+        """cameras: the dataset's stated cameras (indexed like it), whose poses `center` needs to find
+        the gauge in world coordinates."""
         self.train_cameras = [int(c) for c in train_cameras]
         self.device = torch.device(device)
         self.scale = float(scale)
-        self._stated = None if cameras is None else np.stack(
-            [np.asarray(cameras[c].world_to_camera, np.float64) for c in self.train_cameras])
+        self._stated = np.stack([np.asarray(cameras[c].world_to_camera, np.float64) for c in self.train_cameras])
         self.rotation = {c: torch.zeros(3, device=self.device, requires_grad=True) for c in self.train_cameras}
         self.translation = {c: torch.zeros(3, device=self.device, requires_grad=True) for c in self.train_cameras}
 
@@ -115,15 +114,8 @@ class PoseCorrections:
     @torch.no_grad()
     def center(self) -> None:
         """Project the gauge out of the corrections (module docstring): a similarity shared by every
-        camera is a motion of the whole scene, which the data cannot fix. Without the stated cameras,
-        only the mean correction (camera coordinates) is removed."""
+        camera is a motion of the whole scene, which the data cannot fix."""
         if not self.train_cameras:
-            return
-        if self._stated is None:
-            for values in (self.rotation, self.translation):
-                mean = torch.stack(list(values.values())).mean(0)
-                for c in self.train_cameras:
-                    values[c].sub_(mean)
             return
         w = torch.stack([self.rotation[c] for c in self.train_cameras]).double().cpu().numpy()
         t = torch.stack([self.translation[c] for c in self.train_cameras]).double().cpu().numpy() * self.scale

@@ -25,7 +25,7 @@ from stg_runtime.atomic import atomic_output, remove_leftovers
 from stg_runtime.camera import Camera
 from stg_runtime.progress import Progress
 
-from .appearance import CameraAppearance, radial
+from .appearance import CameraAppearance, lens_brightness, radial
 from .data.flow import initial_velocity
 from .config import MOTION_INITS, TrainConfig  # noqa: F401 (TrainConfig's home is config; re-exported)
 from .data.points import InitialPoints, initial_points
@@ -155,7 +155,7 @@ class Trainer:
                                                cfg.appearance_vignetting and cfg.lens_falloff is None)
             groups += self.appearance.param_groups(cfg.camera_learning_rates)
         if cfg.pose_refine:
-            self.poses = PoseCorrections(ds.train_cameras, self.device, scale=self.extent, cameras=ds.cameras)
+            self.poses = PoseCorrections(ds.train_cameras, ds.cameras, self.device, scale=self.extent)
             groups += self.poses.param_groups(cfg.camera_learning_rates)
         if groups:
             for group in groups:
@@ -176,9 +176,8 @@ class Trainer:
     def _lens_falloff(self, camera_index: int) -> Tensor:
         """(H, W) known vignetting of a training camera (TrainConfig.lens_falloff), cached."""
         if camera_index not in self._falloffs:
-            k1, k2 = (list(self.config.lens_falloff) + [0.0, 0.0])[:2]
-            s = radial(self.dataset.cameras[camera_index], self.device)
-            self._falloffs[camera_index] = 1.0 + float(k1) * s + float(k2) * s * s
+            k = [float(v) for v in (list(self.config.lens_falloff) + [0.0, 0.0])[:2]]
+            self._falloffs[camera_index] = lens_brightness(radial(self.dataset.cameras[camera_index], self.device), k)
         return self._falloffs[camera_index]
 
     def refined_cameras(self) -> list[Camera]:

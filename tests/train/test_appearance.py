@@ -134,7 +134,7 @@ def test_a_known_lens_falloff_keeps_the_vignetting_out_of_the_scene(tmp_path):
 def test_the_transform_of_the_means_renders_the_corrected_camera():
     g = _random_gaussians(2000)
     stated = Camera(57.6, 57.6, 32, 24, 64, 48, np.eye(4), name="c")
-    poses = PoseCorrections([0], "cpu")
+    poses = PoseCorrections([0], [stated], "cpu")
     with torch.no_grad():
         poses.rotation[0].copy_(torch.tensor([0.01, -0.02, 0.015]))
         poses.translation[0].copy_(torch.tensor([0.03, 0.01, -0.02]))
@@ -151,7 +151,7 @@ def test_pose_refinement_recovers_an_injected_pose_error():
                           np.array([0.03, -0.02, 0.01]), 0)
     stated = error.perturb(true)
     target = _render(g, true).detach()
-    poses = PoseCorrections([0], "cpu")
+    poses = PoseCorrections([0], [stated], "cpu")
     optimizer = torch.optim.Adam(poses.param_groups({"rotation": 1e-3, "translation": 1e-3}), eps=1e-15)
     rays = torch.zeros(48, 64, 6)
     for _ in range(150):
@@ -166,7 +166,7 @@ def test_pose_refinement_recovers_an_injected_pose_error():
 
 def test_the_view_inputs_follow_the_refined_camera():
     stated = Camera(57.6, 57.6, 32, 24, 64, 48, np.eye(4), name="c")
-    poses = PoseCorrections([0], "cpu")
+    poses = PoseCorrections([0], [stated], "cpu")
     with torch.no_grad():
         poses.rotation[0].copy_(torch.tensor([0.02, 0.01, -0.03]))
         poses.translation[0].copy_(torch.tensor([0.1, -0.05, 0.02]))

@@ -97,7 +97,7 @@ def test_pose_refinement_projects_the_gauge_out():
 
     rig = _rig()
     cams = [Camera(50, 50, 32, 24, 64, 48, w, name=f"c{i}") for i, w in enumerate(rig)]
-    poses = PoseCorrections(range(len(rig)), "cpu", scale=2.0, cameras=cams)
+    poses = PoseCorrections(range(len(rig)), cams, "cpu", scale=2.0)
     moved = _moved_by_similarity(rig, np.radians(0.3) * np.array([0.6, 0.0, 0.8]), 0.995, [0.0, 0.01, -0.01])
     w, t = corrections_between(moved, rig)
     rng = np.random.default_rng(2)
