@@ -225,8 +225,11 @@ void main() {  // a quad per Gaussian, not instanced (instancing is slow in soft
   v_f0 = record(base + 3).xyz;${full ? `
   v_f1 = record(base + 4).xyz;
   v_f2 = record(base + 5).xyz;` : ""}
+  // The quad, 1/8 pixel wider on each side than what it must hold: the rasterizer moves its corners
+  // to its subpixel grid (WebGL2 allows grids as coarse as 1/16 pixel: SwiftShader's), so with less a
+  // pixel centre just inside the footprint's box, as where the box is the radius, could be left out.
   vec2 corner = vec2(float(v & 1), float(v >> 1)) * 2.0 - 1.0;
-  vec2 p = shape.xy + (corner.x * (quad.z + 0.01)) * quad.xy + (corner.y * (quad.w + 0.01)) * vec2(-quad.y, quad.x);
+  vec2 p = shape.xy + (corner.x * (quad.z + 0.125)) * quad.xy + (corner.y * (quad.w + 0.125)) * vec2(-quad.y, quad.x);
   gl_Position = vec4(p / u_size * 2.0 - 1.0, 0.0, 1.0);
 }`;
   const fragment = `#version 300 es

@@ -126,6 +126,37 @@ def snapshot(driver, camera: dict | None = None, t: float | None = None) -> np.n
     return data.reshape(result["height"], result["width"], 4)
 
 
+SPLAT_TARGET = """
+const [cam, t, done] = arguments, r = window.stg.player.renderer;
+try {
+  window.stg.setCamera(cam);
+  window.stg.setTime(t);
+  window.stg.snapshot().then(() => {
+    const gl = r.gl, T = r.targets, values = new Float32Array(4 * T.width * T.height);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, T.splatFbo);
+    gl.readBuffer(gl.COLOR_ATTACHMENT0);
+    gl.readPixels(0, 0, T.width, T.height, gl.RGBA, gl.FLOAT, values);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+    const bytes = new Uint8Array(values.buffer);
+    let text = "";
+    for (let i = 0; i < bytes.length; i += 0x8000) text += String.fromCharCode(...bytes.subarray(i, i + 0x8000));
+    done({width: T.width, height: T.height, data: btoa(text)});
+  }, (e) => done({error: String(e)}));
+} catch (e) { done({error: String(e)}); }
+"""
+
+
+def splat_target(driver, camera: dict, t: float) -> np.ndarray:
+    """(H, W, 4) float32, top row first: the first splat target (features 0..2 and alpha, before the
+    colour pass) of window.stg.snapshot() after setCamera(camera) and setTime(t) (a lite model's
+    splatted colour and alpha, to compare with Player.render_all's features and alpha)."""
+    result = driver.execute_async_script(SPLAT_TARGET, camera, t)
+    if "error" in result:
+        raise AssertionError(f"reading the splat target failed: {result['error']}")
+    data = np.frombuffer(base64.b64decode(result["data"]), np.float32)
+    return data.reshape(result["height"], result["width"], 4)
+
+
 def psnr(image: np.ndarray, reference: np.ndarray) -> float:
     """PSNR in dB of uint8 `image` (H, W, 3) against float `reference` in [0, 1]."""
     mse = np.mean((image.astype(np.float64) / 255.0 - np.clip(reference, 0, 1).astype(np.float64)) ** 2)

@@ -112,6 +112,78 @@ def test_vector_matches_the_player(site, browser, name, path):
     assert min(values) >= MIN_PSNR, values
 
 
+def box_edge_model() -> Model:
+    """Thin Gaussians (lite, opacity 0.99, an identity camera at 140x96) whose footprint box is cut by
+    the 3-sigma radius r = 6 pixels (3 sqrt(lambda_max) = 5.9): along the long axis the box's edges lie
+    s = 0.002 .. 0.015 pixels beyond a pixel centre (the mean s from a pixel centre, each side, long
+    axis along x and along y), and those centres take alpha ~0.01. So a quad drawn to the box with
+    less margin than the rasterizer's snapping of its corners (1/16 pixel at WebGL2's minimum of 4
+    subpixel bits) leaves them out. A fifth column holds thin Gaussians turned by 15-120 degrees (the
+    oriented quads). None overlap."""
+    fx, z, W, H = 100.0, 4.0, 140, 96
+    long_axis = np.sqrt(((6 - 0.1) / 3) ** 2 - 0.3) * z / fx  # world sigma: 3 sqrt(lambda_max) = 5.9 pixels
+    means, scales, quats = [], [], []
+    for row in range(4):
+        along_y, sign = row >= 2, (1, -1)[row % 2]
+        for col in range(5):
+            centre = np.array([28 * col + 14.5, 24 * row + 12.5])  # a pixel centre
+            quat, scale = [1.0, 0.0, 0.0, 0.0], [long_axis, 0.01, 0.002]
+            if col < 4:
+                shift = sign * (0.002, 0.005, 0.01, 0.015)[col]
+                centre += [0.3, shift] if along_y else [shift, 0.3]
+                if along_y:
+                    scale = [0.01, long_axis, 0.002]
+            else:
+                centre += 0.3  # (on a pixel centre, an integer radius would put centres on the box's edge)
+                angle = np.radians((15, 35, 60, 120)[row])
+                quat = [np.cos(angle / 2), 0.0, 0.0, np.sin(angle / 2)]
+            means.append([(centre[0] - W / 2) * z / fx, (centre[1] - H / 2) * z / fx, z])
+            scales.append(scale)
+            quats.append(quat)
+    n = len(means)
+    seg = Segment(0, 10, opacity=np.full(n, 0.99, np.float32), t_center=np.full(n, 0.5, np.float32),
+                  t_scale=np.zeros(n, np.float32), position=np.array(means, np.float32)[:, None],
+                  rotation=np.array(quats, np.float32)[:, None], scale=np.array(scales, np.float32),
+                  features=np.random.default_rng(0).uniform(0.2, 1.0, (n, 3)).astype(np.float32))
+    return Model("lite", 10.0, [seg], cameras=[Camera(fx, fx, W / 2, H / 2, W, H, np.eye(4), "box edges")])
+
+
+@pytest.mark.parametrize("path", ["points", "quads"])
+def test_footprint_box_edges_match_the_player(site, browser, path):
+    """Both splatting paths cover exactly the pixels of the Player's footprint rule (section 3: pixel
+    centres with |dx| <= h_x, |dy| <= h_y), also centres a few thousandths of a pixel inside the box's
+    edge: the float splat target (colour and alpha before the colour pass) against Player.render_all.
+    With the quads' earlier margin of 0.01 pixel (now 1/8), SwiftShader's quads left out 16 such pixels
+    here (alpha off by up to 0.0085)."""
+    from stg_runtime.projection import camera_params, footprint
+    folder, url = site
+    model = box_edge_model()
+    stg_format.save(model, folder / "box_edges.stg")
+    player = Player(folder / "box_edges.stg", device="cpu")
+    camera, seg = player.cameras[0], player.model.segments[0]
+    # The scene does what it is for: along the long axes the Player's box (at most 6 pixels each side,
+    # the radius) holds 12 pixel centres, the farthest 5.985 .. 5.998 pixels from the mean, where the
+    # alpha reaches 0.005 or more.
+    cam = camera_params(camera)
+    arrays = [np.ascontiguousarray(a, np.float32) for a in (seg.position[:, 0], seg.rotation[:, 0], seg.scale, seg.opacity)]
+    reference = player.render_all(camera, 0.5)
+    for i in [i for i in range(seg.count) if i % 5 < 4]:
+        _, u, v, *_, u0, u1, v0, v1 = footprint(cam, camera.width, camera.height, *arrays, i)
+        mean, lo, hi = (v, v0, v1) if i >= 10 else (u, u0, u1)
+        far = max(hi + 0.5 - mean, mean - lo - 0.5)
+        assert hi - lo == 11 and 5.98 < far < 6.0, (i, lo, hi, far)
+        end = hi if hi + 0.5 - mean > mean - lo - 0.5 else lo
+        edge = reference.alpha[v0:v1 + 1, end] if i < 10 else reference.alpha[end, u0:u1 + 1]
+        assert edge.max() > 0.005, (i, edge)
+    open_model(browser, url, "box_edges.stg")
+    browser.execute_script("window.stg.player.renderer.usePoints = arguments[0]", path == "points")
+    splat = page.splat_target(browser, camera.to_dict(), 0.5)
+    expect = np.concatenate([reference.features, reference.alpha[..., None]], axis=-1)
+    diff = np.abs(splat - expect)
+    print(f"\nbox edges ({path}): {int((diff > 1e-5).sum())} values differ by more than 1e-5, at most {diff.max():.2g}")
+    assert diff.max() <= 1e-4, f"{int((diff[..., 3] > 1e-4).sum())} pixels' alpha off, by up to {diff[..., 3].max():.4f}"
+
+
 CANVAS_PIXELS = """
 const [cam, t, done] = arguments, p = window.stg.player, gl = p.renderer.gl;
 p.pause();
