@@ -312,17 +312,18 @@ def seam_figures(frame_psnrs, pair_errors, starts) -> dict:
             "flicker_ratio": max(seams.values()) / inner_error if seams and inner_error > 0 else None}
 
 
-def evaluate_seams(result: dict, segment_starts) -> dict | None:
+def evaluate_seams(result: dict, segment_starts, require_seam: bool = True) -> dict | None:
     """seam_figures of an evaluate_images / evaluate_player `result` over consecutive frames, for a model
     whose segments start at `segment_starts` (frames numbered as the rows' "frame"): each frame's PSNR
     and temporal error are the means over the result's cameras (its "per_frame" rows). None unless the
-    rows cover consecutive frames holding a seam (two segments or more)."""
+    rows cover consecutive frames holding a seam (two segments or more), or, with require_seam False,
+    two consecutive frames or more (one segment: its first and last frames against its interior)."""
     rows = result["per_frame"]
     frames = sorted({r["frame"] for r in rows})
     if len(frames) < 2 or frames != list(range(frames[0], frames[-1] + 1)):
         return None
     starts = [s - frames[0] for s in segment_starts if frames[0] < s <= frames[-1]]
-    if not starts:
+    if not starts and require_seam:
         return None
     by_frame = {j: [r for r in rows if r["frame"] == j] for j in frames}
     psnrs = [np.mean([r["psnr"] for r in by_frame[j]]) for j in frames]

@@ -173,3 +173,6 @@ def test_evaluate_seams_finds_the_pop_between_two_segments():
     assert [r["temporal_error"] for r in result["per_frame"]][0] is None  # no pair ends at the first frame
     one = metrics.evaluate_player(player, data, frames=range(0, 3))
     assert metrics.evaluate_seams(one, [0, 3]) is None  # frames of one segment: no seam
+    ends = metrics.evaluate_seams(one, [0, 3], require_seam=False)  # ... but its ends against its interior
+    assert set(ends["boundary"]) == {0, 2} and ends["seams"] == {} and ends["flicker_ratio"] is None
+    assert ends["worst_dip"] == pytest.approx(0.0, abs=1e-9)  # every frame of segment 0 is at 26.02 dB
