@@ -18,6 +18,14 @@ Prints, over those views:
 A clip of one segment (--frames 30 --segment-frames 30) has no seam: it prints its first and last
 frames against its interior, the ends of a video.
 
+--windows measures a segment's ends without the scene's own frame-to-frame difficulty: it trains two
+windows of --segment-frames frames alone (no context, as a video's ends), A from frame 0 and B half a
+window later, and prints, frame by frame where they overlap, B's PSNR minus A's: negative at B's first
+frames (its edge, A's interior) and positive at A's last frames (A's edge, B's interior). The clip needs
+1.5 windows of frames:
+
+    python bench/seams.py --windows --frames 45 --segment-frames 30 --iterations 1500
+
 The figures are stg_train.metrics.evaluate_seams over the views' evaluate_player rows; the clip is the demo scene's (stg_train.synthetic),
 written once per size into a temp folder (or --data). Training settings are the defaults of
 stg-train (TrainConfig) with --iterations and --points; --set KEY=VALUE changes a TrainConfig field
@@ -35,6 +43,7 @@ import tempfile
 from pathlib import Path
 
 import stg_train  # noqa: F401  (first: it configures OpenMP before torch loads)
+import numpy as np
 
 from stg_runtime.format import load
 from stg_runtime.player import Player
@@ -68,6 +77,9 @@ def main() -> None:
     ap.add_argument("--data", default=None, help="scene folder (written once; default: a temp folder per size)")
     ap.add_argument("--out", default=None, help="training folder (default: a new temp folder)")
     ap.add_argument("--json", default=None, help="also write the figures as JSON here")
+    ap.add_argument("--windows", action="store_true",
+                    help="instead: two windows of --segment-frames frames half a window apart, each trained "
+                         "alone; their difference where they overlap (see above)")
     args = ap.parse_args()
 
     size = f"12x{args.frames}-{args.width}x{args.height}"
@@ -80,6 +92,12 @@ def main() -> None:
     out = Path(args.out or tempfile.mkdtemp(prefix="stg-seams-"))
     print(f"{ds}; segments of {args.segment_frames} frames, {args.iterations} steps each, {args.points} initial "
           f"points, seed {args.seed}, settings {dict(args.set)}; training into {out}", flush=True)
+    if args.windows:
+        figures = edge_windows(ds, novel, config, args.segment_frames, out)
+        if args.json:
+            Path(args.json).write_text(json.dumps({"settings": {**vars(args), "set": dict(args.set)}, **figures},
+                                                  indent=1) + "\n")
+        return
     train(ds, out, config, quiet=True, segment_frames=args.segment_frames)
     player = Player(out / "model.stg", device="cpu")
     rows, figures = seam_report(player, ds, novel, "as trained")
@@ -103,6 +121,31 @@ def main() -> None:
         Path(args.json).write_text(json.dumps({"settings": {**vars(args), "set": dict(args.set)},
                                                "per_frame": rows, "figures": figures, "one_frame": one_frame,
                                                "by_crossfade": by_crossfade}, indent=1) + "\n")
+
+
+def edge_windows(ds, novel, config: TrainConfig, window: int, out: Path) -> dict:
+    """Windows A (frames [0, window)) and B ([window // 2, window // 2 + window)) of `ds`, each trained
+    alone into out/A, out/B; returns and prints {"offset", "per_frame": {"A", "B": {frame: psnr}} and
+    "dynamic", the same over the dynamic pixels} (frames of the clip; PSNR the mean over the held-out
+    camera and the novel views)."""
+    offset = window // 2
+    if ds.num_frames < offset + window:
+        raise SystemExit(f"--windows needs at least {offset + window} frames (--frames), got {ds.num_frames}")
+    per_frame = {"psnr": {}, "dynamic_psnr": {}}
+    for name, start in (("A", 0), ("B", offset)):
+        train(ds.frame_range(start, window), out / name, config, quiet=True)
+        player = Player(out / name / "model.stg", device="cpu")
+        rows = [r for views in (ds, novel) for r in evaluate_player(player, views.frame_range(start, window))["per_frame"]]
+        for key in per_frame:  # rows count frames from the window's start
+            per_frame[key][name] = {start + j: float(np.nanmean([np.nan if r[key] is None else r[key]
+                                                                 for r in rows if r["frame"] == j]))
+                                    for j in range(window)}
+    both = range(offset, window)
+    for key, label in (("psnr", "all pixels"), ("dynamic_psnr", "dynamic pixels")):
+        a, b = per_frame[key]["A"], per_frame[key]["B"]
+        print(f"B - A ({label}), frames {both.start}-{both.stop - 1} (B's first .. A's last): "
+              + " ".join(f"{b[j] - a[j]:+.2f}" for j in both), flush=True)
+    return {"offset": offset, "per_frame": per_frame}
 
 
 def seam_report(player, ds, novel, label: str):
