@@ -53,7 +53,8 @@ class TrainConfig:
     frames on each side a segment is also fitted to (as context: it shows only its own frames, and the
     players crossfade over the seam where both neighbours have context; stg_train.segments);
     edge_weight: how often the first and last frames of the video (trainer.EDGE_FRAMES of them; of a
-    segment, at an end where it has no context) are drawn for a training step, relative to the others.
+    segment, at an end where it has no context) are drawn for a training step, relative to the others
+    (ours; the reference draws every frame alike, 1).
     docs/training.md says which defaults are the reference's and which are ours, with the measurements behind them.
     """
 
@@ -85,7 +86,7 @@ class TrainConfig:
     lens_falloff: tuple | None = None
     camera_learning_rates: dict = field(default_factory=dict)
     segment_context: int = 2
-    edge_weight: float = 1.0
+    edge_weight: float = 2.0
 
     def for_dataset(self, dataset) -> "TrainConfig":
         """These settings with the choices left open made: init "auto" (or None) -> default_method(dataset),

@@ -46,7 +46,9 @@ view-volume initial points (--init; the reference uses SfM), initial motion from
 (--motion-init; the reference starts at zero), learning rates stretched to --iterations (the
 reference's are set for 30000 steps), guided sampling at the error patch's median depth after one
 poor view (the reference: the view's maximum depth, two views), pruning applied at densification,
-scale learning rate 0.005 (the reference's N3V configurations: 0.003), no rotation/motion separation.
+scale learning rate 0.005 (the reference's N3V configurations: 0.003), no rotation/motion separation,
+the video's first and last 3 frames drawn twice as often (--edge-weight; the reference draws every
+frame alike).
 Exit codes: 0 done, 2 bad data or arguments."""
 
 
@@ -57,6 +59,18 @@ def _segment_list(text: str) -> list[int]:
         return parse_segment_list(text)
     except ValueError as e:
         raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def _edge_weight(text: str) -> float:
+    """W -> float, refused outside [1, 10] (below 1 the ends would be drawn less; far above, the run's
+    length grows with W and the ends take the other frames' steps)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number from 1 to 10, got {text!r}") from None
+    if not 1 <= value <= 10:  # also refuses nan
+        raise argparse.ArgumentTypeError(f"expected a number from 1 to 10, got {text!r}")
+    return value
 
 
 def _lens_falloff(text: str) -> tuple[float, float]:
@@ -80,7 +94,8 @@ CONFIG_OPTIONS = {"model": "--model", "iterations": "--iterations", "batch": "--
                   "init": "--init", "init_every": "--init-every", "motion_init": "--motion-init", "seed": "--seed",
                   "checkpoint_every": "--checkpoint-every", "guided": "--no-guided", "device": "--device",
                   "splatter": "--splatter", "appearance": "--appearance", "pose_refine": "--pose-refine",
-                  "segment_context": "--segment-context", "lens_falloff": "--lens-falloff"}
+                  "segment_context": "--segment-context", "lens_falloff": "--lens-falloff",
+                  "edge_weight": "--edge-weight"}
 #: argparse dest -> TrainConfig field, where they differ.
 _DEST_FIELDS = {"points": "num_points", "no_guided": "guided"}
 
@@ -125,6 +140,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "so its own frames get --iterations steps' worth); players then crossfade over every "
                         "seam where both neighbours have context, over C frames (format 1.3; 0: hard cuts "
                         "as before; default %(default)s; docs/training.md, \"Seams\")")
+    p.add_argument("--edge-weight", type=_edge_weight, default=d.edge_weight, metavar="W",
+                   help="draw the video's first and last frames (3 at each end) W times as often as the others "
+                        "for a training step: a video's ends are otherwise its weakest frames (1: every frame "
+                        "alike, as the reference; default %(default)s; docs/training.md, \"Seams\")")
     p.add_argument("--segments", type=_segment_list, default=None, metavar="LIST",
                    help="train only these segments, indices from 0: e.g. 2,3 or 0-2 (default: all); run "
                         "the others elsewhere, copy their OUT/segments/NN folders into OUT/segments, and "
@@ -210,7 +229,7 @@ def _config(args, splatter: str) -> TrainConfig:
     base.guided, base.init_every, base.init = not args.no_guided, args.init_every, args.init
     base.motion_init = args.motion_init
     base.appearance, base.pose_refine = args.appearance, args.pose_refine
-    base.segment_context = args.segment_context
+    base.segment_context, base.edge_weight = args.segment_context, args.edge_weight
     base.lens_falloff = args.lens_falloff
     if args.iterations:
         base.iterations = args.iterations

@@ -310,6 +310,18 @@ def test_frame_weights_and_steps(dataset):
     assert np.allclose(p[-EDGE_FRAMES:] / p[5], 3.0) and np.allclose(p[:-EDGE_FRAMES], p[5])
 
 
+def test_edge_weight_default_and_option():
+    from stg_train.cli.train import _config, build_parser
+    from stg_train.trainer import EDGE_FRAMES, TrainConfig, frame_weights
+
+    assert TrainConfig().edge_weight == 2.0  # the video's ends drawn twice as often (docs/training.md, "Seams")
+    p = frame_weights(30, (0, 0), TrainConfig().edge_weight)
+    assert np.allclose(p[:EDGE_FRAMES] / p[15], 2.0) and np.allclose(p[-EDGE_FRAMES:] / p[15], 2.0)
+    args = build_parser().parse_args(["data", "--out", "run", "--edge-weight", "3"])
+    assert _config(args, "numba").edge_weight == 3.0
+    assert _config(build_parser().parse_args(["data", "--out", "run", "--edge-weight", "1"]), "numba").edge_weight == 1.0
+
+
 @pytest.fixture(scope="module")
 def context_run(scene_dir, tmp_path_factory):
     """Both segments trained with 2 context frames: each fitted to frames 0-5 and 2-7."""
