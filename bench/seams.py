@@ -125,9 +125,9 @@ def main() -> None:
 
 def edge_windows(ds, novel, config: TrainConfig, window: int, out: Path) -> dict:
     """Windows A (frames [0, window)) and B ([window // 2, window // 2 + window)) of `ds`, each trained
-    alone into out/A, out/B; returns and prints {"offset", "per_frame": {"A", "B": {frame: psnr}} and
-    "dynamic", the same over the dynamic pixels} (frames of the clip; PSNR the mean over the held-out
-    camera and the novel views)."""
+    alone into out/A, out/B. Prints B - A where they overlap; returns {"offset": window // 2,
+    "per_frame": {"psnr" | "dynamic_psnr": {"A" | "B": {clip frame: dB}}}}, each frame's PSNR (over all
+    pixels, or the dynamic ones) the mean over the held-out camera and the novel views."""
     offset = window // 2
     if ds.num_frames < offset + window:
         raise SystemExit(f"--windows needs at least {offset + window} frames (--frames), got {ds.num_frames}")

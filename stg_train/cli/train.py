@@ -62,8 +62,8 @@ def _segment_list(text: str) -> list[int]:
 
 
 def _edge_weight(text: str) -> float:
-    """W -> float, refused outside [1, 10] (below 1 the ends would be drawn less; far above, the run's
-    length grows with W and the ends take the other frames' steps)."""
+    """W -> float, refused outside [1, 10] (below 1 the ends would be drawn less than the others; far
+    above, they would take most of the run's steps)."""
     try:
         value = float(text)
     except ValueError:
