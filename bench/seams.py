@@ -26,6 +26,9 @@ frames (its edge, A's interior) and positive at A's last frames (A's edge, B's i
 
     python bench/seams.py --windows --frames 45 --segment-frames 30 --iterations 1500
 
+--reverse plays the clip backwards (its last frame first, for training and scoring): a dip that stays
+with the scene's frame is the scene's, one that moves to the new first or last frame is the method's.
+
 The figures are stg_train.metrics.evaluate_seams over the views' evaluate_player rows; the clip is the demo scene's (stg_train.synthetic),
 written once per size into a temp folder (or --data). Training settings are the defaults of
 stg-train (TrainConfig) with --iterations and --points; --set KEY=VALUE changes a TrainConfig field
@@ -36,6 +39,7 @@ crossfade widths (stg_train.convert.merge.merge_models).
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import os
 import sys
@@ -77,6 +81,7 @@ def main() -> None:
     ap.add_argument("--data", default=None, help="scene folder (written once; default: a temp folder per size)")
     ap.add_argument("--out", default=None, help="training folder (default: a new temp folder)")
     ap.add_argument("--json", default=None, help="also write the figures as JSON here")
+    ap.add_argument("--reverse", action="store_true", help="play the clip backwards (see above)")
     ap.add_argument("--windows", action="store_true",
                     help="instead: two windows of --segment-frames frames half a window apart, each trained "
                          "alone; their difference where they overlap (see above)")
@@ -88,6 +93,8 @@ def main() -> None:
     ds = load_n3v(data, prefer_png=True)
     scene = SyntheticScene(seed=0, duration=args.frames / ds.fps)
     novel = novel_view_dataset(scene, args.frames, ds.fps, args.width, args.height)
+    if args.reverse:
+        ds, novel = backwards(ds), backwards(novel)
     config = TrainConfig(iterations=args.iterations, num_points=args.points, seed=args.seed, **dict(args.set))
     out = Path(args.out or tempfile.mkdtemp(prefix="stg-seams-"))
     print(f"{ds}; segments of {args.segment_frames} frames, {args.iterations} steps each, {args.points} initial "
@@ -121,6 +128,13 @@ def main() -> None:
         Path(args.json).write_text(json.dumps({"settings": {**vars(args), "set": dict(args.set)},
                                                "per_frame": rows, "figures": figures, "one_frame": one_frame,
                                                "by_crossfade": by_crossfade}, indent=1) + "\n")
+
+
+def backwards(dataset):
+    """A copy of `dataset` whose frames play in the reverse order (frame j is the original's F - 1 - j)."""
+    clip = copy.copy(dataset)
+    clip.frames = np.ascontiguousarray(np.asarray(dataset.frames)[:, ::-1])
+    return clip
 
 
 def edge_windows(ds, novel, config: TrainConfig, window: int, out: Path) -> dict:
