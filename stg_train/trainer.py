@@ -1,6 +1,7 @@
 """The training loop: batches of views at one time, loss, Adam, density control, checkpoints, progress.
 
-Each step draws one frame j (normalised time tau = j / num_frames) and `batch` training cameras, renders
+Each step draws one frame j (normalised time tau = j / num_frames; the video's end frames
+TrainConfig.edge_weight times as often, Trainer.sample_frame) and `batch` training cameras, renders
 them with the configured splatter (stg_train.render.rasterize), and minimises 0.8 L1 + 0.2 (1 - SSIM)
 (stg_train.losses) averaged over the views; the strategies (stg_train.strategy) act around backward(). Ground-truth frames stay on the CPU as uint8 (the dataset's
 memory map) and only the batch's frames move to the device, so memory does not grow with the frame count.
