@@ -25,6 +25,7 @@ import numpy as np
 from stg_runtime.camera import Camera
 
 from .gauge import corrections_between, gauge_part
+from .rotations import rotation_from_axis_angle
 
 
 @dataclass(frozen=True)
@@ -82,16 +83,6 @@ class CaptureModel:
         return asdict(self)
 
 
-def _rotation(rotvec: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation of an axis-angle vector (radians), Rodrigues' formula."""
-    angle = float(np.linalg.norm(rotvec))
-    if angle < 1e-15:
-        return np.eye(3)
-    k = rotvec / angle
-    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(angle) * kx + (1 - np.cos(angle)) * kx @ kx
-
-
 @dataclass
 class CameraEffects:
     """One camera's share of a CaptureModel: gain (scalar), white_balance (3,), vignetting, noise,
@@ -132,7 +123,7 @@ class CameraEffects:
         error rotation, then its translation moved by `translation` (the true camera stays as given)."""
         w2c = np.array(camera.world_to_camera, dtype=np.float64)
         error = np.eye(4)
-        error[:3, :3] = _rotation(self.rotation)
+        error[:3, :3] = rotation_from_axis_angle(self.rotation)
         error[:3, 3] = self.translation
         return replace(camera, world_to_camera=error @ w2c)
 

@@ -15,9 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-
-def _cross_matrix(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+from .rotations import cross_matrix, rotation_vector
 
 
 def gauge_part(world_to_camera: np.ndarray, rotation: np.ndarray,
@@ -37,21 +35,13 @@ def gauge_part(world_to_camera: np.ndarray, rotation: np.ndarray,
     for k in range(len(r)):
         rows.append(np.hstack([weight * np.eye(3), np.zeros((3, 1)), np.zeros((3, 3))]))
         rhs.append(weight * turn[k])
-        rows.append(np.hstack([-_cross_matrix(d[k]), d[k][:, None], np.eye(3)]))
+        rows.append(np.hstack([-cross_matrix(d[k]), d[k][:, None], np.eye(3)]))
         rhs.append(move[k])
     x = np.linalg.lstsq(np.vstack(rows), np.concatenate(rhs), rcond=None)[0]
     omega, sigma, tau = x[:3], x[3], x[4:]
     gauge_move = np.cross(omega, d) + sigma * d + tau
     # back to camera coordinates: w_c = -R_c a_c, t_c = -R_c dC_c
     return -np.einsum("kij,j->ki", r, omega), -np.einsum("kij,kj->ki", r, gauge_move)
-
-
-def rotation_vector(rotation: np.ndarray) -> np.ndarray:
-    """(3,) axis-angle (radians) of a (3, 3) rotation matrix (angles below pi)."""
-    vee = 0.5 * np.array([rotation[2, 1] - rotation[1, 2], rotation[0, 2] - rotation[2, 0],
-                          rotation[1, 0] - rotation[0, 1]])
-    angle = float(np.arccos(np.clip((np.trace(rotation) - 1.0) / 2.0, -1.0, 1.0)))
-    return vee if angle < 1e-8 else vee * (angle / np.sin(angle))
 
 
 def corrections_between(estimated: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -45,6 +45,7 @@ import numpy as np
 
 from stg_runtime.camera import Camera
 
+from ..rotations import rotation_from_axis_angle
 from .dataset import DataError, Dataset
 from .frames import DEFAULT_FPS, IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, FrameSource, build_dataset
 
@@ -59,19 +60,9 @@ CAMERA_FOLDER = re.compile(r"^camera_\d+$")
 
 
 # -- models.json <-> Camera --------------------------------------------------------------------------
-def rotation_from_axis_angle(v) -> np.ndarray:
-    """(3, 3) rotation matrix of the axis-angle vector v (3,) (Rodrigues' formula; angle = |v| radians)."""
-    v = np.asarray(v, dtype=np.float64)
-    angle = np.linalg.norm(v)
-    if angle < 1e-15:
-        return np.eye(3)
-    k = v / angle
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
-
-
 def axis_angle_from_rotation(R) -> np.ndarray:
-    """(3,) axis-angle vector of the rotation matrix R (3, 3) (the inverse of rotation_from_axis_angle)."""
+    """(3,) axis-angle vector of the rotation matrix R (3, 3) (the inverse of rotation_from_axis_angle;
+    cv2.Rodrigues, right at angles near pi; rotations.rotation_vector is the one for tiny angles)."""
     import cv2
 
     return cv2.Rodrigues(np.asarray(R, dtype=np.float64))[0].ravel()

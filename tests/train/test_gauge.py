@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 from stg_runtime.camera import Camera
-from stg_train.capture import _rotation, pose_errors
-from stg_train.gauge import corrections_between, gauge_part, rotation_vector
+from stg_train.capture import pose_errors
+from stg_train.gauge import corrections_between, gauge_part
+from stg_train.rotations import rotation_from_axis_angle, rotation_vector
 
 
 def _rig(n=9, seed=0) -> np.ndarray:
@@ -30,7 +31,7 @@ def _rig(n=9, seed=0) -> np.ndarray:
 
 def _moved_by_similarity(w2c: np.ndarray, turn, scale, shift) -> np.ndarray:
     """The cameras of a world mapped by X -> scale R(turn) X + shift (the same pictures of the mapped scene)."""
-    rs = _rotation(np.asarray(turn))
+    rs = rotation_from_axis_angle(np.asarray(turn))
     out = []
     for w in w2c:
         r, centre = w[:3, :3], -w[:3, :3].T @ w[:3, 3]
@@ -43,7 +44,7 @@ def _moved_by_similarity(w2c: np.ndarray, turn, scale, shift) -> np.ndarray:
 
 def test_rotation_vector_inverts_rodrigues():
     for v in ([0.0, 0.0, 0.0], [1e-9, 0, 0], [0.01, -0.02, 0.03], [0.5, 1.0, -0.7]):
-        np.testing.assert_allclose(rotation_vector(_rotation(np.array(v))), v, atol=1e-12)
+        np.testing.assert_allclose(rotation_vector(rotation_from_axis_angle(np.array(v))), v, atol=1e-12)
 
 
 def test_a_similarity_of_the_rig_is_all_gauge():
@@ -85,7 +86,7 @@ def test_pose_errors_with_the_gauge_removed():
     # a camera of its own off by 0.5 degrees stays visible: the rig's fit takes about a ninth of it as a
     # turn of all nine, leaving 8/9 of 0.5 on that camera and 1/9 on each other one (mean 2 x 0.5 x 8 / 81)
     wrong = moved.copy()
-    wrong[3] = np.block([[_rotation(np.radians(0.5) * np.array([1.0, 0, 0])), np.zeros((3, 1))],
+    wrong[3] = np.block([[rotation_from_axis_angle(np.radians(0.5) * np.array([1.0, 0, 0])), np.zeros((3, 1))],
                          [np.zeros((1, 3)), np.ones((1, 1))]]) @ wrong[3]
     aligned = pose_errors(cams(wrong), record)
     assert aligned["aligned_rotation_deg"] == pytest.approx(2 * 0.5 * 8 / 81, abs=0.01)
