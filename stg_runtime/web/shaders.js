@@ -94,7 +94,9 @@ export function splatShaders(kind, L) {
   v_f2 = dt * vec3(${f(L.features + 6)}, ${f(L.features + 7)}, ${f(L.features + 8)});` : ""}`;
   // The projection, as a transform-feedback pass writing one record per Gaussian ("feedback": the
   // quads read them), or as the vertex shader of one point sprite per Gaussian ("points").
-  const projection = (mode) => `#version 300 es
+  const projection = (mode) => {
+    const out = mode === "feedback" ? "out" : "";  // the record's fields: outputs, or the point's locals
+    return `#version 300 es
 precision highp float;
 precision highp int;
 precision highp sampler2D;
@@ -102,12 +104,12 @@ uniform sampler2D u_data;
 uniform float u_tau;
 ${CAMERA_UNIFORMS}
 in uint a_index;
-${mode === "feedback" ? "out" : ""} vec4 g_shape;   // 2D mean (pixels), half extents of the footprint (pixels)
-${mode === "feedback" ? "out" : ""} vec4 g_conic;   // conic (power = a dx^2 + b dx dy + c dy^2), temporal opacity (0: culled)
-${mode === "feedback" ? "out" : ""} vec4 g_quad;    // the quad drawn: its first axis (unit) and half lengths along both axes (pixels)
-${mode === "feedback" ? "out" : ""} vec4 g_f0;      // features 0..2 (w unused)${full ? `
-${mode === "feedback" ? "out" : ""} vec4 g_f1;
-${mode === "feedback" ? "out" : ""} vec4 g_f2;` : ""}${mode === "points" ? `
+${out} vec4 g_shape;   // 2D mean (pixels), half extents of the footprint (pixels)
+${out} vec4 g_conic;   // conic (power = a dx^2 + b dx dy + c dy^2), temporal opacity (0: culled)
+${out} vec4 g_quad;    // the quad drawn: its first axis (unit) and half lengths along both axes (pixels)
+${out} vec4 g_f0;      // features 0..2 (w unused)${full ? `
+${out} vec4 g_f1;
+${out} vec4 g_f2;` : ""}${mode === "points" ? `
 ${FLAT_OUT}` : ""}
 const int T = ${L.texels};
 void cull() {
@@ -197,6 +199,7 @@ ${Array.from({ length: L.texels }, (_, k) => `  vec4 d${k} = texelFetch(u_data, 
   v_f1_ = v_f1;
   v_f2_ = v_f2;` : ""}` : ""}
 }`;
+  };
   const project = projection("feedback");
   const R = full ? 6 : 4;  // texels per record: shape, conic, quad, features
   const vertex = `#version 300 es
