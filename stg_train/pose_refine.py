@@ -148,4 +148,3 @@ class PoseCorrections:
             for i, c in enumerate(self.train_cameras):
                 self.rotation[c].copy_(state["rotation"][i])
                 self.translation[c].copy_(state["translation"][i])
-
