@@ -27,9 +27,9 @@ Chromium and the Player take turns (never at the same time), on the same cores.
 from __future__ import annotations
 
 import argparse
-import os
 import functools
 import http.server
+import os
 import sys
 import tempfile
 import threading
