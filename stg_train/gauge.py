@@ -1,8 +1,8 @@
 """The gauge of a camera rig: a similarity of the whole world (a small turn, shift and change of scale)
 applied to the scene and to every camera alike leaves every picture unchanged, so poses estimated from
-pictures alone are defined only up to it. `gauge_part` finds that part of small pose corrections, to be
-removed by pose refinement (stg_train.pose_refine) and before pose errors are compared with a known
-truth (stg_train.capture.pose_errors).
+pictures alone are defined only up to it. `gauge_part` finds that part of small pose corrections
+(`gauge_projector`: the same as one matrix), to be removed by pose refinement (stg_train.pose_refine)
+and before pose errors are compared with a known truth (stg_train.capture.pose_errors).
 
 Conventions (formats/stg-v1.md): world_to_camera (4, 4), OpenCV; a correction of camera c is the rigid
 D_c = [exp([w_c]x) | t_c] applied in camera coordinates (corrected camera D_c W_c), w_c axis-angle in
@@ -42,6 +42,18 @@ def gauge_part(world_to_camera: np.ndarray, rotation: np.ndarray,
     gauge_move = np.cross(omega, d) + sigma * d + tau
     # back to camera coordinates: w_c = -R_c a_c, t_c = -R_c dC_c
     return -np.einsum("kij,j->ki", r, omega), -np.einsum("kij,kj->ki", r, gauge_move)
+
+
+def gauge_projector(world_to_camera: np.ndarray) -> np.ndarray:
+    """(6K, 6K) matrix P of `gauge_part` for K cameras with stated world_to_camera (K, 4, 4): with
+    x = concat(rotation.ravel(), translation.ravel()) (rotation, translation (K, 3) as there), P @ x is
+    the gauge part in the same layout. gauge_part is linear in the corrections, so P is built from it
+    column by column, once; applying it needs no least-squares solve (on a GPU: no copy to the host)."""
+    k = len(world_to_camera)
+    basis = np.eye(6 * k)
+    columns = [np.concatenate([part.ravel() for part in gauge_part(world_to_camera, e[:3 * k].reshape(k, 3),
+                                                                  e[3 * k:].reshape(k, 3))]) for e in basis]
+    return np.stack(columns, axis=1)
 
 
 def corrections_between(estimated: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

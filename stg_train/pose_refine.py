@@ -27,7 +27,7 @@ from torch import Tensor
 
 from stg_runtime.camera import Camera
 
-from .gauge import gauge_part
+from .gauge import gauge_projector
 
 #: Adam learning rates of the pose corrections (per step; decayed with the run, see Trainer): rotation in
 #: radians, translation in units of the scene extent (params.extent_of). gsplat's pose_opt_lr; at 1e-4
@@ -79,9 +79,19 @@ class PoseCorrections:
         self.train_cameras = [int(c) for c in train_cameras]
         self.device = torch.device(device)
         self.scale = float(scale)
-        self._stated = np.stack([np.asarray(cameras[c].world_to_camera, np.float64) for c in self.train_cameras])
+        stated = np.stack([np.asarray(cameras[c].world_to_camera, np.float64) for c in self.train_cameras])
+        self._projector = gauge_projector(stated) if self.train_cameras else None
+        self._gauge = self._scaled_gauge()
         self.rotation = {c: torch.zeros(3, device=self.device, requires_grad=True) for c in self.train_cameras}
         self.translation = {c: torch.zeros(3, device=self.device, requires_grad=True) for c in self.train_cameras}
+
+    def _scaled_gauge(self) -> Tensor | None:
+        """gauge.gauge_projector for the parameters (rotations in radians, translations in units of
+        `scale`, where the projector takes world units), float64 on the device."""
+        if self._projector is None:
+            return None
+        units = np.repeat([1.0, self.scale], 3 * len(self.train_cameras))
+        return torch.as_tensor(self._projector * units[None, :] / units[:, None], device=self.device)
 
     def param_groups(self, lr: dict | None = None) -> list[dict]:
         lr = {**POSE_LR, **(lr or {})}
@@ -117,13 +127,12 @@ class PoseCorrections:
         camera is a motion of the whole scene, which the data cannot fix."""
         if not self.train_cameras:
             return
-        w = torch.stack([self.rotation[c] for c in self.train_cameras]).double().cpu().numpy()
-        t = torch.stack([self.translation[c] for c in self.train_cameras]).double().cpu().numpy() * self.scale
-        dw, dt = gauge_part(self._stated, w, t)
+        x = torch.cat([torch.stack([self.rotation[c] for c in self.train_cameras]).reshape(-1),
+                       torch.stack([self.translation[c] for c in self.train_cameras]).reshape(-1)])
+        part = (self._gauge @ x.double()).reshape(2, -1, 3)
         for i, c in enumerate(self.train_cameras):
-            self.rotation[c].sub_(torch.as_tensor(dw[i], dtype=self.rotation[c].dtype, device=self.device))
-            self.translation[c].sub_(torch.as_tensor(dt[i] / self.scale, dtype=self.translation[c].dtype,
-                                                     device=self.device))
+            self.rotation[c].sub_(part[0, i].to(self.rotation[c].dtype))
+            self.translation[c].sub_(part[1, i].to(self.translation[c].dtype))
 
     @torch.no_grad()
     def refined(self, cameras: list[Camera]) -> list[Camera]:
@@ -144,6 +153,7 @@ class PoseCorrections:
             raise ValueError(f"pose refinement: the checkpoint's training cameras {state['train_cameras']} are not "
                              f"this dataset's {self.train_cameras}")
         self.scale = float(state["scale"])
+        self._gauge = self._scaled_gauge()
         with torch.no_grad():
             for i, c in enumerate(self.train_cameras):
                 self.rotation[c].copy_(state["rotation"][i])

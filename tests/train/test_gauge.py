@@ -8,7 +8,7 @@ import pytest
 
 from stg_runtime.camera import Camera
 from stg_train.capture import pose_errors
-from stg_train.gauge import corrections_between, gauge_part
+from stg_train.gauge import corrections_between, gauge_part, gauge_projector
 from stg_train.rotations import rotation_from_axis_angle, rotation_vector
 
 
@@ -92,13 +92,26 @@ def test_pose_errors_with_the_gauge_removed():
     assert aligned["aligned_rotation_deg"] == pytest.approx(2 * 0.5 * 8 / 81, abs=0.01)
 
 
+def test_the_projector_is_gauge_part_as_one_matrix():
+    rig = _rig()
+    rng = np.random.default_rng(5)
+    w, t = rng.normal(0, 1e-3, (9, 3)), rng.normal(0, 1e-2, (9, 3))
+    gw, gt = gauge_part(rig, w, t)
+    p = gauge_projector(rig)
+    assert p.shape == (54, 54)
+    np.testing.assert_allclose(p @ np.concatenate([w.ravel(), t.ravel()]), np.concatenate([gw.ravel(), gt.ravel()]),
+                               rtol=0, atol=1e-15)
+    np.testing.assert_allclose(p @ p, p, atol=1e-12)  # a projection: what it removes has no gauge left
+
+
 def test_pose_refinement_projects_the_gauge_out():
     torch = pytest.importorskip("torch")
     from stg_train.pose_refine import PoseCorrections
 
     rig = _rig()
     cams = [Camera(50, 50, 32, 24, 64, 48, w, name=f"c{i}") for i, w in enumerate(rig)]
-    poses = PoseCorrections(range(len(rig)), cams, "cpu", scale=2.0)
+    poses = PoseCorrections(range(len(rig)), cams, "cpu", scale=1.0)
+    poses.load_state_dict({**poses.state_dict(), "scale": 2.0})  # the projector follows the unit
     moved = _moved_by_similarity(rig, np.radians(0.3) * np.array([0.6, 0.0, 0.8]), 0.995, [0.0, 0.01, -0.01])
     w, t = corrections_between(moved, rig)
     rng = np.random.default_rng(2)
