@@ -23,6 +23,8 @@ from torch import Tensor
 
 from stg_runtime.camera import Camera
 
+from .lens import lens_brightness
+
 #: Adam learning rates of the per-camera appearance (per step; decayed with the run, see Trainer).
 APPEARANCE_LR = {"matrix": 1e-2, "bias": 3e-3, "vignetting": 5e-3}
 
@@ -35,12 +37,6 @@ def radial(camera: Camera, device, dtype=torch.float32) -> Tensor:
     r2 = u[None, :] ** 2 + v[:, None] ** 2
     corner = max((x - camera.cx) ** 2 + (y - camera.cy) ** 2 for x in (0, camera.width) for y in (0, camera.height))
     return r2 / corner
-
-
-def lens_brightness(s: Tensor, k) -> Tensor:
-    """(H, W) lens brightness 1 + k1 s + k2 s^2 at the radial values s of `radial`, k = (k1, k2)
-    (floats or a differentiable (2,) tensor)."""
-    return 1.0 + k[0] * s + k[1] * s * s
 
 
 class CameraAppearance:

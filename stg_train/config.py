@@ -47,7 +47,7 @@ class TrainConfig:
     the loss only (stg_train.appearance); pose_refine: a learned rigid correction of each training
     camera's pose (stg_train.pose_refine); lens_falloff: the training cameras' known vignetting
     (k1, k2), e.g. from a flat-field calibration, applied to their renders before the loss as
-    1 + k1 s + k2 s^2 (appearance.radial's s), when the appearance then learns none;
+    1 + k1 s + k2 s^2 (stg_train.lens; ValueError outside its range), when the appearance then learns none;
     camera_learning_rates: overrides of their rates (keys "matrix", "bias", "vignetting" of
     appearance.APPEARANCE_LR, "rotation", "translation" of pose_refine.POSE_LR); segment_context: for a video trained in segments, how many neighbouring
     frames on each side a segment is also fitted to (as context: it shows only its own frames, and the

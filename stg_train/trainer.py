@@ -26,7 +26,8 @@ from stg_runtime.atomic import atomic_output, remove_leftovers
 from stg_runtime.camera import Camera
 from stg_runtime.progress import Progress
 
-from .appearance import CameraAppearance, lens_brightness, radial
+from .appearance import CameraAppearance, radial
+from .lens import known_falloff, lens_brightness
 from .data.flow import initial_velocity
 from .config import MOTION_INITS, TrainConfig  # noqa: F401 (TrainConfig's home is config; re-exported)
 from .data.points import InitialPoints, initial_points
@@ -85,6 +86,8 @@ class Trainer:
         if config.motion_init not in MOTION_INITS:
             raise ValueError(f"motion_init must be one of {MOTION_INITS}, got {config.motion_init!r}")
         config = config.for_dataset(dataset)
+        if config.lens_falloff is not None:
+            known_falloff(config.lens_falloff)  # a ValueError before anything is computed
         self.dataset, self.config = dataset, config
         self.out_dir = None if out_dir is None else Path(out_dir)
         if self.out_dir is not None:
@@ -177,7 +180,7 @@ class Trainer:
     def _lens_falloff(self, camera_index: int) -> Tensor:
         """(H, W) known vignetting of a training camera (TrainConfig.lens_falloff), cached."""
         if camera_index not in self._falloffs:
-            k = [float(v) for v in (list(self.config.lens_falloff) + [0.0, 0.0])[:2]]
+            k = known_falloff(self.config.lens_falloff)
             self._falloffs[camera_index] = lens_brightness(radial(self.dataset.cameras[camera_index], self.device), k)
         return self._falloffs[camera_index]
 

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import math
 import shlex
 import sys
 import time
@@ -10,6 +9,7 @@ from pathlib import Path
 
 from ..choices import INIT_METHODS, MOTION_INITS
 from ..config import DEMO_SCENE, DEMO_TRAINING, TrainConfig
+from ..lens import known_falloff
 from .common import (Parser, add_dataset_options, check_dataset_options, dataset_options, error, format_table,
                      given_options, nonnegative_int, port, positive_int)
 
@@ -74,19 +74,15 @@ def _edge_weight(text: str) -> float:
 
 
 def _lens_falloff(text: str) -> tuple[float, float]:
-    """K1[,K2] -> (k1, k2), refused unless the brightness 1 + k1 s + k2 s^2 stays within (0, 2] for s in [0, 1]."""
+    """K1[,K2] -> (k1, k2), checked by lens.known_falloff (the brightness within (0, 2] over the image)."""
     try:
         values = [float(v) for v in text.split(",")]
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected K1 or K1,K2 (numbers), got {text!r}") from None
-    if not 1 <= len(values) <= 2 or not all(math.isfinite(v) for v in values):
-        raise argparse.ArgumentTypeError(f"expected K1 or K1,K2 (finite numbers), got {text!r}")
-    k1, k2 = (values + [0.0])[:2]
-    brightness = [1 + k1 * s + k2 * s * s for s in (i / 100 for i in range(101))]
-    if min(brightness) <= 0 or max(brightness) > 2:
-        raise argparse.ArgumentTypeError(f"the brightness 1 + K1 s + K2 s^2 must stay within (0, 2] for s in "
-                                         f"[0, 1]; {text!r} gives {min(brightness):.3g} .. {max(brightness):.3g}")
-    return (k1, k2)
+    try:
+        return known_falloff(values)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(f"{e} (from {text!r})") from None
 
 
 #: TrainConfig field -> the option that sets it (what a resumed run names when it refuses or applies one).

@@ -18,6 +18,7 @@ from stg_train.capture import CameraEffects, CaptureModel, capture_record, pose_
 from stg_train.cli.synth import main as synth_main  # noqa: E402
 from stg_train.data import load_n3v  # noqa: E402
 from stg_train.export import export_trainer  # noqa: E402
+from stg_train.lens import known_falloff  # noqa: E402
 from stg_train.params import Gaussians  # noqa: E402
 from stg_train.pose_refine import PoseCorrections  # noqa: E402
 from stg_train.render import rasterize  # noqa: E402
@@ -129,6 +130,16 @@ def test_a_known_lens_falloff_keeps_the_vignetting_out_of_the_scene(tmp_path):
     print(f"rim / centre brightness against the clean scene: {known:.3f} with the falloff given, "
           f"{learned_by_scene:.3f} without")
     assert known > 0.93 and learned_by_scene < 0.88
+
+
+def test_a_known_falloff_out_of_range_is_refused_before_training(tmp_path):
+    assert known_falloff((-0.3,)) == (-0.3, 0.0) and known_falloff([-0.3, 0.05]) == (-0.3, 0.05)
+    for bad, says in (((-1.0,), "0 .. 1"), ((0.5, 0.6), "1 .. 2.1"), ((float("nan"),), "finite"), ((), "K1")):
+        with pytest.raises(ValueError, match=says.replace(".", r"\.")):
+            known_falloff(bad)
+    write_n3v(tmp_path, SyntheticScene(seed=0, duration=SCENE["num_frames"] / SCENE["fps"]), **SCENE)
+    with pytest.raises(ValueError, match="must stay within"):
+        Trainer(load_n3v(tmp_path, prefer_png=True), TrainConfig(**TRAIN, lens_falloff=(-1.5, 0.0)))
 
 
 def test_the_transform_of_the_means_renders_the_corrected_camera():

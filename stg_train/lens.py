@@ -1,0 +1,28 @@
+"""A lens's radial brightness falloff (vignetting), `1 + k1 s + k2 s^2` with s the squared distance from
+the principal point over its value at the farthest image corner (appearance.radial): the polynomial
+once, for the falloff the cameras learn (stg_train.appearance) and the one given as known
+(TrainConfig.lens_falloff, `stg-train --lens-falloff`), and the range a known one must keep. Imports
+nothing, so the command line checks a falloff before torch loads."""
+from __future__ import annotations
+
+import math
+
+
+def lens_brightness(s, k):
+    """The brightness 1 + k1 s + k2 s^2 at radial values s (a float, numpy array or tensor, any shape),
+    k = (k1, k2) (floats or a differentiable (2,) tensor)."""
+    return 1.0 + k[0] * s + k[1] * s * s
+
+
+def known_falloff(k) -> tuple[float, float]:
+    """(k1, k2) of a known falloff given as (k1,) or (k1, k2); ValueError unless both are finite and the
+    brightness stays within (0, 2] over the image (s in [0, 1]; checked at 101 points)."""
+    values = [float(v) for v in k]
+    if not 1 <= len(values) <= 2 or not all(math.isfinite(v) for v in values):
+        raise ValueError(f"a lens falloff is K1 or K1,K2 (finite numbers), got {tuple(k)!r}")
+    k1, k2 = (values + [0.0])[:2]
+    brightness = [lens_brightness(i / 100, (k1, k2)) for i in range(101)]
+    if min(brightness) <= 0 or max(brightness) > 2:
+        raise ValueError(f"the brightness 1 + K1 s + K2 s^2 must stay within (0, 2] for s in [0, 1]; "
+                         f"K1, K2 = {k1:g}, {k2:g} give {min(brightness):.3g} .. {max(brightness):.3g}")
+    return k1, k2
