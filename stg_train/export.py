@@ -73,17 +73,16 @@ def to_model(params: STGParams, cameras: list[Camera], fps: float, num_frames: i
              provenance: dict | None = None, start_frame: int = 0, context: tuple[int, int] = (0, 0)) -> Model:
     """A one-segment runtime Model of `params` trained on frames [start_frame, start_frame + num_frames).
     context (before, after): that many of those frames at either end were context (Dataset.context_frames):
-    the segment then shows the frames between them, its time normalised over those (Segment.retimed),
-    and records the context.
+    the segment then shows the frames between them, over which its time is already normalised (the
+    trainer's frame_time), and records the context.
 
     bounds: ((3,), (3,)) world box; default: the box of the Gaussians' centres. provenance: stored as is
     (tool, version, settings)."""
     arrays = to_file_arrays({k: v.detach().cpu().numpy() for k, v in params.raw.items()})
     decoder = None if params.decoder is None else mlp_to_onnx(params.decoder.weights())
-    segment = Segment(start_frame, num_frames, decoder=decoder, activation="sigmoid", **arrays)
-    before, after = context
-    if before or after:
-        segment = segment.retimed(start_frame + before, num_frames - before - after)
+    before, after = (int(c) for c in context)
+    segment = Segment(start_frame + before, num_frames - before - after, decoder=decoder, activation="sigmoid",
+                      context_frames=(before, after), **arrays)
     if bounds is None:
         xyz = arrays["position"][:, 0]
         bounds = (xyz.min(0).tolist(), xyz.max(0).tolist()) if len(xyz) else ([0.0] * 3, [0.0] * 3)
@@ -106,14 +105,13 @@ def trainer_render(params: STGParams, camera: Camera, tau: float) -> np.ndarray:
 
 def compare_with_runtime(params: STGParams, player: Player, cameras: list[Camera], frames) -> GoldenDiff:
     """The worst GoldenDiff of trainer rgb vs runtime rgb over every camera x frame j of the player's
-    first segment (player at t = (start_frame + j) / fps; the trainer, whose time spans the segment's
-    frames and its context (before, after), at tau = (before + j) / (before + num_frames + after))."""
+    first segment (player at t = (start_frame + j) / fps; the trainer at tau = j / num_frames, its time
+    normalised over the segment's shown frames as the file's)."""
     worst = GoldenDiff(0.0, 0.0)
     seg = player.model.segments[0]
-    before, after = seg.context_frames
     for cam in cameras:
         for j in frames:
-            ours = trainer_render(params, cam, (before + j) / (before + seg.num_frames + after))
+            ours = trainer_render(params, cam, j / seg.num_frames)
             theirs = player.render(cam, (seg.start_frame + j) / player.fps)
             worst = worst.worst(GoldenDiff.of(ours, theirs))
     return worst

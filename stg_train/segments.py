@@ -7,9 +7,9 @@ segment is an ordinary training run on a frame-range view of the dataset (Datase
 own folder OUT/segments/NN/ (checkpoint.pt, model.stg starting at its start_frame, metrics.json), with
 time normalised over the segment (frame j of a segment of n frames has tau = j / n). With
 TrainConfig.segment_context = c, a segment is also fitted to up to c frames of each neighbour (its
-view's context frames, segment_view; the trainer normalises time over all of them and the export
-renormalises it over the shown frames, Segment.retimed, so the file still covers the segment's own
-frames), and the merge crossfades every seam whose two segments both have context
+view's context frames, segment_view; its time is still normalised over its own frames, so the
+context frames lie just outside [0, 1), trainer.frame_time, and its file covers its own frames), and
+the merge crossfades every seam whose two segments both have context
 (stg_train.convert.merge, formats/stg-v1.md "Segments and crossfades"). When every segment
 of the plan is finished, their files are merged (stg_train.convert.merge) into OUT/model.stg, which the
 Player plays end to end, and the held-out camera is evaluated over every frame.

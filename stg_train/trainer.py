@@ -1,6 +1,7 @@
 """The training loop: batches of views at one time, loss, Adam, density control, checkpoints, progress.
 
-Each step draws one frame j (normalised time tau = j / num_frames; the video's end frames
+Each step draws one frame j (normalised time frame_time(dataset, j): j / num_frames, or over the shown
+frames of a segment with context, whose context frames lie just outside [0, 1); the video's end frames
 TrainConfig.edge_weight times as often, Trainer.sample_frame) and `batch` training cameras, renders
 them with the configured splatter (stg_train.render.rasterize), and minimises 0.8 L1 + 0.2 (1 - SSIM)
 (stg_train.losses) averaged over the views; the strategies (stg_train.strategy) act around backward(). Ground-truth frames stay on the CPU as uint8 (the dataset's
@@ -40,6 +41,9 @@ from .strategy import (DensityControl, GuidedSampling, GuidedSettings, Schedule,
                        Strategy, Thresholds)
 
 CHECKPOINT_VERSION = 1
+#: The time axis of the checkpoints written here (frame_time): normalised over the shown frames. Those of a
+#: segment with context frames written before it ("time" absent) spanned the context frames too.
+TIME_AXIS = "shown"
 
 
 # -- the trainer ------------------------------------------------------------------------------------
@@ -49,6 +53,16 @@ def run_steps(iterations: int, dataset) -> int:
     so that the shown frames are drawn as often as without context."""
     before, after = getattr(dataset, "context_frames", (0, 0))
     return round(iterations * dataset.num_frames / (dataset.num_frames - before - after))
+
+
+def frame_time(dataset, j: int) -> float:
+    """Normalised time of frame j (0-based, context frames included) of a dataset: tau = j / num_frames,
+    where a dataset with context frames (Dataset.context_frames (before, after)) counts over the frames
+    it shows, tau = (j - before) / (num_frames - before - after), so that its context frames lie just
+    outside [0, 1) and a segment's time axis is the same with context or without (the exported
+    segment's, formats/stg-v1.md; the players render a crossfade's frames at those times)."""
+    before, after = getattr(dataset, "context_frames", (0, 0))
+    return (j - before) / (dataset.num_frames - before - after)
 
 
 #: How many frames at an end without context (trainer.frame_weights) TrainConfig.edge_weight applies to.
@@ -113,7 +127,8 @@ class Trainer:
             self.params = STGParams.from_points(xyz, rgb, t_center, config.model, config.static,
                                                 self.device, seed=config.seed, frozen=config.frozen)
             if config.motion_init == "flow" and self.params.trainable("motion"):
-                velocity = initial_velocity(self.dataset, xyz, rgb, t_center, progress=motion_progress)
+                shown = self.dataset.shown() if hasattr(self.dataset, "shown") else self.dataset
+                velocity = initial_velocity(shown, xyz, rgb, t_center, progress=motion_progress)
                 with torch.no_grad():
                     self.params.raw["motion"][:, 0:3] = torch.as_tensor(velocity, device=self.device)
             self.box = np.stack([xyz.min(0), xyz.max(0)])
@@ -225,16 +240,11 @@ class Trainer:
 
     def _initial_points(self, progress) -> InitialPoints:
         """The initial points, from the frames the dataset shows (not its context frames: those only
-        refine what the shown frames start), their t_center in the whole dataset's normalised time."""
+        refine what the shown frames start), their t_center normalised over those (frame_time)."""
         ds, config = self.dataset, self.config
         shown = ds.shown() if hasattr(ds, "shown") else ds
-        initial = initial_points(shown, config.init, config.num_points, self.rng, every=config.init_every,
-                                 depth_candidates=config.depth_candidates, progress=progress)
-        if shown is ds:
-            return initial
-        before = ds.context_frames[0]
-        return replace(initial, t_center=((initial.t_center * shown.num_frames + before) / ds.num_frames)
-                       .astype(np.float32))
+        return initial_points(shown, config.init, config.num_points, self.rng, every=config.init_every,
+                              depth_candidates=config.depth_candidates, progress=progress)
 
     # -- one step -------------------------------------------------------------------------------------
     def sample_frame(self) -> int:
@@ -252,7 +262,7 @@ class Trainer:
         frame = self.sample_frame()
         train = ds.train_cameras
         views = [train[i] for i in self.rng.choice(len(train), size=min(cfg.batch, len(train)), replace=False)]
-        tau = frame / ds.num_frames
+        tau = frame_time(ds, frame)
         for group in self.optimizer.param_groups:
             if group["name"] == "xyz":
                 group["lr"] = position_lr(self.lr, self.extent, self.step, self.steps)
@@ -321,14 +331,14 @@ class Trainer:
         values = []
         for ci in ds.test_cameras:
             for j in frames:
-                img = self.render_numpy(ds.cameras[ci], j / ds.num_frames)
+                img = self.render_numpy(ds.cameras[ci], frame_time(ds, j))
                 mse = float(np.mean((img.astype(np.float64) - ds.image(ci, j)) ** 2))
                 values.append(psnr_of_mse(max(mse, 1e-12)))
         return float(np.mean(values))
 
     # -- checkpoints ----------------------------------------------------------------------------------
     def state_dict(self) -> dict:
-        return {"version": CHECKPOINT_VERSION, "config": asdict(self.config), "step": self.step,
+        return {"version": CHECKPOINT_VERSION, "time": TIME_AXIS, "config": asdict(self.config), "step": self.step,
                 "params": self.params.state_dict(), "optimizer": self.optimizer.state_dict(),
                 "strategies": [s.state_dict() for s in self.strategies], "box": self.box.tolist(),
                 "history": self.history, "seconds": self.seconds,
@@ -357,6 +367,9 @@ class Trainer:
         state = torch.load(path, map_location="cpu", weights_only=True)
         if state.get("version") != CHECKPOINT_VERSION:
             raise ValueError(f"{path}: checkpoint version {state.get('version')} is not {CHECKPOINT_VERSION}")
+        if any(getattr(dataset, "context_frames", (0, 0))) and state.get("time") != TIME_AXIS:
+            raise ValueError(f"{path}: this segment was trained with context frames by an earlier version, whose "
+                             "time axis also spanned them; it cannot continue here: remove its folder to retrain it")
         config = TrainConfig.from_dict(state["config"])
         if device is not None:
             config.device = device

@@ -300,9 +300,13 @@ def test_frame_range_with_context_and_the_chunks(dataset):
 
 
 def test_frame_weights_and_steps(dataset):
-    from stg_train.trainer import EDGE_FRAMES, frame_weights, run_steps
+    from stg_train.trainer import EDGE_FRAMES, frame_time, frame_weights, run_steps
 
     assert run_steps(100, dataset) == 100 and run_steps(100, dataset.frame_range(2, 4, context=(2, 2))) == 200
+    # time counts over the shown frames: a segment's axis is the same with context or without
+    assert [frame_time(dataset, j) for j in (0, 4)] == [0.0, 4 / dataset.num_frames]
+    view = dataset.frame_range(2, 4, context=(2, 1))
+    assert [frame_time(view, j) for j in range(7)] == [-0.5, -0.25, 0.0, 0.25, 0.5, 0.75, 1.0]
 
     assert frame_weights(10, (0, 0), 1.0) is None and frame_weights(10, (2, 2), 3.0) is None  # uniform
     p = frame_weights(12, (2, 0), 3.0)  # the end without context drawn 3 times as often
@@ -320,6 +324,17 @@ def test_edge_weight_default_and_option():
     args = build_parser().parse_args(["data", "--out", "run", "--edge-weight", "3"])
     assert _config(args, "numba").edge_weight == 3.0
     assert _config(build_parser().parse_args(["data", "--out", "run", "--edge-weight", "1"]), "numba").edge_weight == 1.0
+
+
+def test_a_context_checkpoint_of_the_earlier_time_axis_is_refused(context_run, dataset, tmp_path):
+    """Before the time axis counted over the shown frames, a segment's spanned its context frames too: such a
+    checkpoint would resume on another axis, so it is refused with what to do."""
+    state = torch.load(context_run / "segments" / "00" / "checkpoint.pt", map_location="cpu", weights_only=True)
+    assert state["time"] == "shown"
+    del state["time"]
+    torch.save(state, tmp_path / "checkpoint.pt")
+    with pytest.raises(ValueError, match="earlier version.*remove its folder"):
+        Trainer.resume(dataset.frame_range(0, 4, context=(0, 2)), tmp_path / "checkpoint.pt")
 
 
 @pytest.fixture(scope="module")
@@ -343,12 +358,13 @@ def test_context_segments_crossfade_over_the_seam(context_run, dataset):
     player = Player(context_run / "model.stg", device="cpu")
     cam = dataset.cameras[dataset.test_cameras[0]]
     a, b = _params(context_run, 0), _params(context_run, 1)  # trained over frames 0-5 and 2-7 (6 frames each)
-    # frames 3 and 4 blend: segment 0 at its frame 3 / 4 (tau over 0-5), segment 1 at its frame 1 / 2 (over 2-7)
+    # each one's time is normalised over its 4 shown frames (0-3, 4-7), its context frames just outside [0, 1):
+    # frames 3 and 4 blend segment 0 at tau 3/4, 4/4 and segment 1 at tau -1/4, 0
     for frame, w in ((3, 0.25), (4, 0.75)):
-        want = (1 - w) * trainer_render(a, cam, frame / 6) + w * trainer_render(b, cam, (frame - 2) / 6)
+        want = (1 - w) * trainer_render(a, cam, frame / 4) + w * trainer_render(b, cam, (frame - 4) / 4)
         assert GoldenDiff.of(player.render_frame(cam, frame), want.astype(np.float32)).ok
-    assert GoldenDiff.of(player.render_frame(cam, 2), trainer_render(a, cam, 2 / 6)).ok  # outside: one segment
-    assert GoldenDiff.of(player.render_frame(cam, 5), trainer_render(b, cam, 3 / 6)).ok
+    assert GoldenDiff.of(player.render_frame(cam, 2), trainer_render(a, cam, 2 / 4)).ok  # outside: one segment
+    assert GoldenDiff.of(player.render_frame(cam, 5), trainer_render(b, cam, 1 / 4)).ok
     # merge: the crossfade follows the context, and can be shortened or cut
     files = [context_run / "segments" / f"{k:02d}" / "model.stg" for k in (0, 1)]
     models = [stg_format.load(f) for f in files]
