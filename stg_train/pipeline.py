@@ -112,7 +112,8 @@ class RunExists(DataError):
 
 
 class ResumeConflict(DataError):
-    """A setting given with resume differs from the checkpoint's and cannot change mid-run."""
+    """A setting given with resume differs from the checkpoint's and cannot change mid-run, or the
+    checkpoint is one this version cannot continue."""
 
 
 class Interrupted(Exception):
@@ -243,8 +244,11 @@ def _resume(dataset, ckpt: Path, out: Path, config: TrainConfig, given: dict[str
                                  f"leave {option.split()[0]} out, or start afresh with --force or a new --out")
         changes[name] = new
         notes.append(f"{option} replaces the checkpoint's {old!r}")
-    trainer = Trainer.resume(dataset, ckpt, out_dir=out, device=config.device, splatter=config.splatter,
-                             changes=changes)
+    try:
+        trainer = Trainer.resume(dataset, ckpt, out_dir=out, device=config.device, splatter=config.splatter,
+                                 changes=changes)
+    except ValueError as e:  # a checkpoint this version cannot continue (Trainer.resume says why)
+        raise ResumeConflict(str(e)) from None
     if trainer.step > trainer.steps:
         raise ResumeConflict(f"{given.get('iterations', '--iterations')}: {ckpt} is already at step {trainer.step}: "
                              f"give more iterations than {trainer.step}")

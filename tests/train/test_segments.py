@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import copy
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -326,7 +327,7 @@ def test_edge_weight_default_and_option():
     assert _config(build_parser().parse_args(["data", "--out", "run", "--edge-weight", "1"]), "numba").edge_weight == 1.0
 
 
-def test_a_context_checkpoint_of_the_earlier_time_axis_is_refused(context_run, dataset, tmp_path):
+def test_a_context_checkpoint_of_the_earlier_time_axis_is_refused(context_run, dataset, scene_dir, tmp_path, capsys):
     """Before the time axis counted over the shown frames, a segment's spanned its context frames too: such a
     checkpoint would resume on another axis, so it is refused with what to do."""
     state = torch.load(context_run / "segments" / "00" / "checkpoint.pt", map_location="cpu", weights_only=True)
@@ -335,6 +336,14 @@ def test_a_context_checkpoint_of_the_earlier_time_axis_is_refused(context_run, d
     torch.save(state, tmp_path / "checkpoint.pt")
     with pytest.raises(ValueError, match="earlier version.*remove its folder"):
         Trainer.resume(dataset.frame_range(0, 4, context=(0, 2)), tmp_path / "checkpoint.pt")
+    # and stg-train --resume says so, with exit code 2 and no traceback
+    run = tmp_path / "run"
+    shutil.copytree(context_run, run)
+    (run / "model.stg").unlink()
+    (run / "segments" / "00" / "metrics.json").unlink()
+    torch.save(state, run / "segments" / "00" / "checkpoint.pt")
+    assert train_main([str(scene_dir), "--out", str(run), "--resume"] + ARGS + ["--segment-context", "2"]) == 2
+    assert "earlier version" in capsys.readouterr().err
 
 
 @pytest.fixture(scope="module")
