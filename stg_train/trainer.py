@@ -65,6 +65,11 @@ def frame_time(dataset, j: int) -> float:
     return (j - before) / (dataset.num_frames - before - after)
 
 
+def shown_frames(dataset):
+    """The dataset without its context frames (Dataset.shown; a dataset without them as it is)."""
+    return dataset.shown() if hasattr(dataset, "shown") else dataset
+
+
 #: How many frames at an end without context (trainer.frame_weights) TrainConfig.edge_weight applies to.
 EDGE_FRAMES = 3
 
@@ -100,8 +105,8 @@ class Trainer:
         if config.motion_init not in MOTION_INITS:
             raise ValueError(f"motion_init must be one of {MOTION_INITS}, got {config.motion_init!r}")
         config = config.for_dataset(dataset)
-        if config.lens_falloff is not None:
-            known_falloff(config.lens_falloff)  # a ValueError before anything is computed
+        # (k1, k2) of a known vignetting, checked (a ValueError) before anything is computed
+        self.lens_falloff = None if config.lens_falloff is None else known_falloff(config.lens_falloff)
         self.dataset, self.config = dataset, config
         self.out_dir = None if out_dir is None else Path(out_dir)
         if self.out_dir is not None:
@@ -127,8 +132,7 @@ class Trainer:
             self.params = STGParams.from_points(xyz, rgb, t_center, config.model, config.static,
                                                 self.device, seed=config.seed, frozen=config.frozen)
             if config.motion_init == "flow" and self.params.trainable("motion"):
-                shown = self.dataset.shown() if hasattr(self.dataset, "shown") else self.dataset
-                velocity = initial_velocity(shown, xyz, rgb, t_center, progress=motion_progress)
+                velocity = initial_velocity(shown_frames(self.dataset), xyz, rgb, t_center, progress=motion_progress)
                 with torch.no_grad():
                     self.params.raw["motion"][:, 0:3] = torch.as_tensor(velocity, device=self.device)
             self.box = np.stack([xyz.min(0), xyz.max(0)])
@@ -195,8 +199,8 @@ class Trainer:
     def _lens_falloff(self, camera_index: int) -> Tensor:
         """(H, W) known vignetting of a training camera (TrainConfig.lens_falloff), cached."""
         if camera_index not in self._falloffs:
-            k = known_falloff(self.config.lens_falloff)
-            self._falloffs[camera_index] = lens_brightness(radial(self.dataset.cameras[camera_index], self.device), k)
+            self._falloffs[camera_index] = lens_brightness(radial(self.dataset.cameras[camera_index], self.device),
+                                                           self.lens_falloff)
         return self._falloffs[camera_index]
 
     def refined_cameras(self) -> list[Camera]:
@@ -241,10 +245,9 @@ class Trainer:
     def _initial_points(self, progress) -> InitialPoints:
         """The initial points, from the frames the dataset shows (not its context frames: those only
         refine what the shown frames start), their t_center normalised over those (frame_time)."""
-        ds, config = self.dataset, self.config
-        shown = ds.shown() if hasattr(ds, "shown") else ds
-        return initial_points(shown, config.init, config.num_points, self.rng, every=config.init_every,
-                              depth_candidates=config.depth_candidates, progress=progress)
+        config = self.config
+        return initial_points(shown_frames(self.dataset), config.init, config.num_points, self.rng,
+                              every=config.init_every, depth_candidates=config.depth_candidates, progress=progress)
 
     # -- one step -------------------------------------------------------------------------------------
     def sample_frame(self) -> int:
@@ -274,7 +277,7 @@ class Trainer:
             rgb, out = self.render(ds.cameras[ci], tau, g, rays)
             if self.appearance is not None:
                 rgb = self.appearance.apply(rgb, ci, ds.cameras[ci])
-            if cfg.lens_falloff is not None:
+            if self.lens_falloff is not None:
                 rgb = rgb * self._lens_falloff(ci)[..., None]
             images.append(rgb)
             renders.append((ds.cameras[ci], out))
