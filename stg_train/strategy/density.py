@@ -2,7 +2,8 @@
 
 Thresholds and schedule follow the reference implementation (N3V settings, 30k iterations): densify
 from 500 every 100 iterations for 6 rounds (gradient threshold 2e-4 in NDC units, percent_dense 0.01,
-split into 2 with scale / 1.6, cloned and split Gaussians get a random temporal centre), prune opacity
+split into 2 with scale / 1.6, cloned and split Gaussians get a random temporal centre; ours centres
+them where in time their parent was hot, Thresholds.new_t_center), prune opacity
 < 0.005 every 100 iterations until 7k, opacity reset to <= 0.01 every 3000 until 9k, Gaussians outside
 the initial box removed at 10k. Schedule.scaled(total) maps these onto a run of `total` iterations.
 The gradient statistic is gsplat's (per view, independent of the batch size; the reference's, one
@@ -26,6 +27,8 @@ from .schedule import Schedule
 
 #: Thresholds.grad_statistic values.
 GRAD_STATISTICS = ("per-view", "summed")
+#: Thresholds.new_t_center values.
+NEW_T_CENTERS = ("gradient", "random", "parent")
 
 
 @dataclass(frozen=True)
@@ -39,13 +42,17 @@ class Thresholds:
     max_screen_radius: float = 20.0  # pixels; pruned when bigger, after the first opacity reset
     max_world_scale: float = 0.1  # x extent; pruned when bigger, after the first opacity reset
     reset_opacity: float = 0.01
-    random_t_center: bool = True  # cloned / split Gaussians get a uniform random temporal centre
+    # the temporal centre of cloned and split Gaussians: "gradient" (the mean normalised time of the steps
+    # that made their parent hot, weighted by its screen gradient at each: new Gaussians go where in time
+    # the error was, and their motion is re-expanded there so that they keep the parent's trajectory),
+    # "random" (uniform in [0, 1), the reference's; `recentre` below) or "parent" (the parent's centre)
+    new_t_center: str = "gradient"
     # a step counts in a Gaussian's mean gradient only when its temporal opacity factor
     # exp(-(dt / s_t)^2) at the step's time is above this (0: every step it is on screen, the reference)
     min_temporal_opacity: float = 0.0
-    # with random_t_center: re-expand the new Gaussians' motion and rotation about their new temporal
-    # centre, so that they keep their parent's trajectory (False: xyz and the coefficients stay, which
-    # shifts the trajectory in time by the change of centre, as the reference does)
+    # with new_t_center "random": re-expand the new Gaussians' motion and rotation about their new
+    # temporal centre, so that they keep their parent's trajectory (False: xyz and the coefficients stay,
+    # which shifts the trajectory in time by the change of centre, as the reference does)
     recentre: bool = False
     # the densification statistic (DensityControl.accumulate): "per-view" (gsplat's default strategy:
     # each view's gradient norm, the loss's 1 / B undone, averaged over the views that see the Gaussian;
@@ -60,6 +67,8 @@ class Thresholds:
     def __post_init__(self):
         if self.grad_statistic not in GRAD_STATISTICS:
             raise ValueError(f"grad_statistic must be one of {GRAD_STATISTICS}, got {self.grad_statistic!r}")
+        if self.new_t_center not in NEW_T_CENTERS:
+            raise ValueError(f"new_t_center must be one of {NEW_T_CENTERS}, got {self.new_t_center!r}")
 
 
 def recentred(raw: dict[str, Tensor], t_center: Tensor) -> dict[str, Tensor]:
@@ -89,6 +98,7 @@ class DensityControl(Strategy):
         self.box = None if box is None else torch.as_tensor(box, dtype=torch.float32).reshape(2, 3)
         self.grad_sum = torch.zeros(0)  # (N,) sum of NDC gradient norms (Thresholds.grad_statistic)
         self.grad_count = torch.zeros(0)  # (N,) views (per-view) or steps (summed) that saw the Gaussian
+        self.grad_time = torch.zeros(0)  # (N,) the same gradient norms times their step's normalised time
         self.max_radius = torch.zeros(0)  # (N,) largest screen radius (pixels) since the last refine
         self.rounds_done = 0
         self.log: list[dict] = []  # one entry per refine step (counts), for reports
@@ -100,14 +110,16 @@ class DensityControl(Strategy):
         if short > 0:
             self.grad_sum = torch.cat([self.grad_sum, torch.zeros(short)])
             self.grad_count = torch.cat([self.grad_count, torch.zeros(short)])
+            self.grad_time = torch.cat([self.grad_time, torch.zeros(short)])
             self.max_radius = torch.cat([self.max_radius, torch.zeros(short)])
         elif short < 0:
             raise RuntimeError("DensityControl: Gaussians were removed outside DensityControl")
 
-    def accumulate(self, renders: list, present=None) -> None:
+    def accumulate(self, renders: list, tau: float, present=None) -> None:
         """Add one step's statistics. renders: (camera, splat.RenderOutput) for every view of the batch;
-        present: optional (N,) bool on the CPU, the Gaussians that exist at the step's time (others do
-        not count).
+        tau: the step's normalised time (each norm added is also added times tau, for new_t_center
+        "gradient"); present: optional (N,) bool on the CPU, the Gaussians that exist at the step's time
+        (others do not count).
 
         Screen gradients are converted from pixels to NDC units (x W/2, H/2). With grad_statistic
         "per-view" (gsplat's default strategy) each view's gradient is multiplied by the number of views
@@ -131,13 +143,17 @@ class DensityControl(Strategy):
             r = out.radii.detach().cpu().float()
             self.max_radius[seen] = torch.maximum(self.max_radius[seen], r[seen])
             if per_view:
-                self.grad_sum[seen] += g.norm(dim=-1)[seen]
+                norm = g.norm(dim=-1)[seen]
+                self.grad_sum[seen] += norm
+                self.grad_time[seen] += norm * tau
                 self.grad_count[seen] += 1
             else:
                 summed = g if summed is None else summed + g
                 seen_any = seen if seen_any is None else seen_any | seen
         if not per_view:
-            self.grad_sum[seen_any] += summed.norm(dim=-1)[seen_any]
+            norm = summed.norm(dim=-1)[seen_any]
+            self.grad_sum[seen_any] += norm
+            self.grad_time[seen_any] += norm * tau
             self.grad_count[seen_any] += 1
 
     # -- the plug-in entry point ------------------------------------------------------------------------
@@ -147,7 +163,7 @@ class DensityControl(Strategy):
         s = self.schedule
         self._fit(params.count)
         if step <= s.prune_until or self.rounds_done < s.densify_rounds:
-            self.accumulate(context.renders, self._present(params, context.tau))
+            self.accumulate(context.renders, context.tau, self._present(params, context.tau))
         if step > s.refine_start and step % s.refine_every == 0:
             if self.rounds_done < s.densify_rounds:
                 self.densify_and_prune(params, optimizer, step)
@@ -176,10 +192,12 @@ class DensityControl(Strategy):
         keep_cpu = keep.cpu()
         keep_gaussians(params, optimizer, keep)
         self.grad_sum, self.grad_count = self.grad_sum[keep_cpu], self.grad_count[keep_cpu]
+        self.grad_time = self.grad_time[keep_cpu]
         self.max_radius = self.max_radius[keep_cpu]
 
     def _reset_stats(self, n: int) -> None:
         self.grad_sum, self.grad_count, self.max_radius = torch.zeros(n), torch.zeros(n), torch.zeros(n)
+        self.grad_time = torch.zeros(n)
 
     def _prune_mask(self, params: STGParams, step: int, big: bool) -> Tensor:
         """(N,) bool on the CPU: Gaussians to remove: low opacity, and with `big` after the first opacity
@@ -221,12 +239,9 @@ class DensityControl(Strategy):
             children["xyz"] = children["xyz"] + (rot @ offsets[..., None]).squeeze(-1)
             children["log_scale"] = children["log_scale"] - math.log(th.split_scale)
             new = {k: torch.cat([new[k], children[k]]) for k in raw}
-        count_new = next(iter(new.values())).shape[0]
-        if th.random_t_center and count_new:
-            t_center = torch.rand(count_new, 1).to(dev)
-            if th.recentre:
-                new.update(recentred(new, t_center))
-            new["t_center"] = t_center
+        if th.new_t_center != "parent" and next(iter(new.values())).shape[0]:
+            parents = torch.nonzero(clone).squeeze(1)
+            new = self._centred_in_time(new, torch.cat([parents, idx.cpu(), idx.cpu()]))
         append_gaussians(params, optimizer, new)
         self._fit(params.count)  # the new Gaussians have no statistics yet
         prune = (self._prune_mask(params, step, big=True) if th.prune_at_densify
@@ -237,6 +252,18 @@ class DensityControl(Strategy):
         self.log.append({"step": step, "cloned": int(clone.sum()), "split": int(split.sum()),
                          "pruned": int(prune.sum()) - int(split.sum()), "count": params.count})
 
+    def _centred_in_time(self, new: dict[str, Tensor], parents: Tensor) -> dict[str, Tensor]:
+        """The new Gaussians `new` (raw rows; row k a copy of Gaussian parents[k], (K,) indices into the
+        statistics) with their temporal centres set by thresholds.new_t_center, "gradient" or "random".
+        A parent whose hot time is unknown (a checkpoint from before it was kept) passes on its own."""
+        th = self.thresholds
+        if th.new_t_center == "random":
+            t_center = torch.rand(parents.shape[0], 1).to(new["t_center"].device)
+            return {**new, **(recentred(new, t_center) if th.recentre else {}), "t_center": t_center}
+        hot_time = (self.grad_time[parents] / self.grad_sum[parents]).reshape(-1, 1).to(new["t_center"].device)
+        t_center = torch.where(torch.isfinite(hot_time), hot_time, new["t_center"])
+        return {**new, **recentred(new, t_center), "t_center": t_center}
+
     def reset_opacity(self, params: STGParams, optimizer) -> None:
         """opacity = min(opacity, reset_opacity) (in logit space), Adam moments of opacity zeroed."""
         cap = math.log(self.thresholds.reset_opacity / (1 - self.thresholds.reset_opacity))
@@ -245,10 +272,13 @@ class DensityControl(Strategy):
     # -- checkpoints -----------------------------------------------------------------------------------
     def state_dict(self) -> dict:
         return {"grad_sum": self.grad_sum.clone(), "grad_count": self.grad_count.clone(),
+                "grad_time": self.grad_time.clone(),
                 "max_radius": self.max_radius.clone(), "rounds_done": self.rounds_done, "log": list(self.log),
                 "schedule": asdict(self.schedule), "thresholds": asdict(self.thresholds), "extent": self.extent}
 
     def load_state_dict(self, state: dict) -> None:
         self.grad_sum, self.grad_count = state["grad_sum"].clone(), state["grad_count"].clone()
+        # a checkpoint from before new_t_center "gradient": the next round's parents pass on their centres
+        self.grad_time = state.get("grad_time", torch.full_like(self.grad_sum, math.nan)).clone()
         self.max_radius = state["max_radius"].clone()
         self.rounds_done, self.log = int(state["rounds_done"]), list(state["log"])

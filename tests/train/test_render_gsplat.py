@@ -129,8 +129,8 @@ def test_density_control_reads_batched_screen_gradients():
     batched.grad = grad[None].clone()
     sched = Schedule.scaled(1000)
     a, b = DensityControl(sched, 1.0), DensityControl(sched, 1.0)
-    a.accumulate([(camera, out)])
-    b.accumulate([(camera, out._replace(means2d=batched))])
+    a.accumulate([(camera, out)], 0.5)
+    b.accumulate([(camera, out._replace(means2d=batched))], 0.5)
     assert torch.equal(a.grad_sum, b.grad_sum) and torch.equal(a.grad_count, b.grad_count)
     assert (a.grad_sum > 0).any()
 

@@ -79,7 +79,7 @@ def test_screen_gradients_are_normed_per_view_in_ndc_units():
     means2d = torch.zeros(3, 2, requires_grad=True)
     means2d.grad = torch.tensor([[1.0, 0.0], [0.0, 2.0], [0.0, 0.0]])
     out = RenderOutput(None, None, None, means2d, torch.tensor([3, 4, 0]), torch.tensor([True, True, False]))
-    dc.accumulate([(camera, out), (camera, out)])
+    dc.accumulate([(camera, out), (camera, out)], 0.25)
     # pixels -> NDC: times (W/2, H/2); each view's gradient times the batch size 2, normed, counted per view
     torch.testing.assert_close(dc.grad_sum, torch.tensor([2 * 2 * 20.0, 2 * 2 * 2 * 15.0, 0.0]))
     torch.testing.assert_close(dc.grad_count, torch.tensor([2.0, 2.0, 0.0]))
@@ -101,7 +101,7 @@ def _statistic(batch: int, statistic: str) -> Tensor:
         losses.append((means2d * torch.tensor([math.cos(angle), math.sin(angle)])).sum())
         renders.append((camera, RenderOutput(None, None, None, means2d, torch.ones(2), torch.ones(2, dtype=torch.bool))))
     torch.stack(losses).mean().backward()  # as loss_fn: the mean over the batch's views
-    dc.accumulate(renders)
+    dc.accumulate(renders, 0.0)
     return dc.grad_sum / dc.grad_count
 
 
@@ -168,3 +168,86 @@ def test_recentred_gaussians_keep_their_trajectory():
         torch.testing.assert_close(after.means, before.means, atol=1e-5, rtol=1e-5)
         torch.testing.assert_close(after.quats, before.quats, atol=1e-5, rtol=1e-5)
     assert not torch.allclose(gaussians_at({**raw, "t_center": new_t}, 0.3).means, gaussians_at(raw, 0.3).means)
+
+
+def _hot_at(dc, index, times, norms):
+    """Feed Gaussian `index` screen gradients of the given norms (NDC units) at the given times."""
+    for tau, norm in zip(times, norms):
+        dc.grad_sum[index] += norm
+        dc.grad_time[index] += norm * tau
+        dc.grad_count[index] += 1
+
+
+def test_new_gaussians_are_centred_where_their_parent_was_hot_on_its_trajectory():
+    from stg_train.params import gaussians_at
+
+    params, optimizer, dc = _setup(n=4, extent=1.0)
+    log_scale = torch.full((4, 3), math.log(0.005))
+    log_scale[3] = math.log(0.05)  # Gaussian 3 splits, Gaussian 0 is cloned
+    _set(params, optimizer, "log_scale", log_scale)
+    gen = torch.Generator().manual_seed(3)
+    _set(params, optimizer, "motion", torch.randn(4, 9, generator=gen))
+    _set(params, optimizer, "t_center", torch.tensor([[0.5], [0.5], [0.5], [0.3]]))
+    dc._fit(4)
+    g = 10 * dc.thresholds.grad
+    _hot_at(dc, 0, times=[0.0, 0.1, 0.9], norms=[3 * g, g, 0.0])  # weighted mean time 0.025
+    _hot_at(dc, 3, times=[0.7, 0.9], norms=[g, g])  # 0.8
+    parent_at = {0: gaussians_at({k: v.detach() for k, v in params.raw.items()}, 0.025).means[0],
+                 3: gaussians_at({k: v.detach() for k, v in params.raw.items()}, 0.8).means[3]}
+    torch.manual_seed(0)
+    dc.densify_and_prune(params, optimizer, step=600)
+    assert dc.log[-1]["cloned"] == 1 and dc.log[-1]["split"] == 1 and params.count == 4 - 1 + 1 + 2
+    t_new = params["t_center"].detach()[-3:].reshape(-1)
+    torch.testing.assert_close(t_new, torch.tensor([0.025, 0.8, 0.8]))
+    raw = {k: v.detach() for k, v in params.raw.items()}
+    # the clone is where its parent was at the hot time; the split children are offset from it
+    torch.testing.assert_close(gaussians_at(raw, 0.025).means[-3], parent_at[0], atol=1e-5, rtol=1e-5)
+    assert torch.all((raw["xyz"][-2:] - parent_at[3]).norm(dim=1) < 0.05 * 4)
+
+
+def test_the_hot_time_is_the_gradient_weighted_mean_of_the_steps():
+    params, optimizer, _ = _setup(n=2)
+    dc = DensityControl(Schedule(refine_start=1000), 1.0)
+    cam = Camera(50, 50, 16, 12, 32, 24, np.eye(4))
+    for tau, weight in ((0.0, 1.0), (1.0, 3.0)):
+        means2d = torch.zeros(2, 2, requires_grad=True)
+        (means2d * torch.tensor([weight, 0.0])).sum().backward()
+        out = RenderOutput(None, None, None, means2d, torch.full((2,), 3), torch.ones(2, dtype=torch.bool))
+        dc.step_post_backward(params, optimizer, 1, StepContext(None, 0, tau, [(cam, out)], None, None))
+    torch.testing.assert_close(dc.grad_time / dc.grad_sum, torch.tensor([0.75, 0.75]))
+
+
+@pytest.mark.parametrize("rule", ["random", "parent"])
+def test_the_other_rules_for_new_temporal_centres(rule):
+    params, optimizer, _ = _setup(n=8, extent=1.0)
+    dc = DensityControl(Schedule(), 1.0, Thresholds(new_t_center=rule))
+    _set(params, optimizer, "log_scale", torch.full((8, 3), math.log(0.005)))
+    _set(params, optimizer, "t_center", torch.full((8, 1), 0.5))
+    dc._fit(8)
+    _hot_at(dc, slice(None), times=[0.1], norms=[10 * dc.thresholds.grad])
+    torch.manual_seed(0)
+    dc.densify_and_prune(params, optimizer, step=600)
+    t_new = params["t_center"].detach()[8:].reshape(-1)
+    assert t_new.shape == (8,)
+    if rule == "parent":
+        assert torch.all(t_new == 0.5)
+    else:  # the reference's: uniform in [0, 1), unrelated to the hot time 0.1
+        assert torch.all((t_new >= 0) & (t_new < 1)) and len(set(t_new.tolist())) == 8
+
+
+def test_a_checkpoint_without_hot_times_passes_the_parents_centres_on():
+    params, optimizer, dc = _setup(n=3, extent=1.0)
+    _set(params, optimizer, "log_scale", torch.full((3, 3), math.log(0.005)))
+    _set(params, optimizer, "t_center", torch.tensor([[0.2], [0.4], [0.6]]))
+    dc._fit(3)
+    _hot_at(dc, slice(None), times=[0.9], norms=[10 * dc.thresholds.grad])
+    state = dc.state_dict()
+    del state["grad_time"]
+    dc.load_state_dict(state)
+    dc.densify_and_prune(params, optimizer, step=600)
+    torch.testing.assert_close(params["t_center"].detach()[3:].reshape(-1), torch.tensor([0.2, 0.4, 0.6]))
+
+
+def test_an_unknown_rule_for_new_temporal_centres_is_refused():
+    with pytest.raises(ValueError, match="new_t_center must be one of"):
+        Thresholds(new_t_center="middle")
