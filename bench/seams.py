@@ -29,6 +29,14 @@ frames (its edge, A's interior) and positive at A's last frames (A's edge, B's i
 --reverse plays the clip backwards (its last frame first, for training and scoring): a dip that stays
 with the scene's frame is the scene's, one that moves to the new first or last frame is the method's.
 
+--offset O trains and scores the scene's frames O .. O + frames - 1 instead of 0 .. frames - 1 (the
+same scene: its fader keeps the timing of a clip of --frames frames), so its seams fall O frames later
+in the scene. Frame j of the output is the scene's frame O + j. A seam frame's PSNR against the same
+scene frame's in an --offset run, where it lies inside a segment, is what the seam costs there, free
+of how hard that frame of the scene is:
+
+    python bench/seams.py --frames 150 --segment-frames 50 --iterations 3000 --offset 25
+
 The figures are stg_train.metrics.evaluate_seams over the views' evaluate_player rows; the clip is the demo scene's (stg_train.synthetic),
 written once per size into a temp folder (or --data). Training settings are the defaults of
 stg-train (TrainConfig) with --iterations and --points; --set KEY=VALUE changes a TrainConfig field
@@ -55,7 +63,7 @@ from stg_train.convert.merge import merge_models
 from stg_train.config import TrainConfig
 from stg_train.data import load_n3v
 from stg_train.metrics import evaluate_player, evaluate_seams
-from stg_train.pipeline import ensure_demo_scene, train
+from stg_train.pipeline import DEMO_SCENE, ensure_demo_scene, train
 from stg_train.synthetic import SyntheticScene, novel_view_dataset
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -82,17 +90,25 @@ def main() -> None:
     ap.add_argument("--out", default=None, help="training folder (default: a new temp folder)")
     ap.add_argument("--json", default=None, help="also write the figures as JSON here")
     ap.add_argument("--reverse", action="store_true", help="play the clip backwards (see above)")
+    ap.add_argument("--offset", type=int, default=0, metavar="O",
+                    help="train and score the scene's frames O .. O + frames - 1 (see above)")
     ap.add_argument("--windows", action="store_true",
                     help="instead: two windows of --segment-frames frames half a window apart, each trained "
                          "alone; their difference where they overlap (see above)")
     args = ap.parse_args()
 
-    size = f"12x{args.frames}-{args.width}x{args.height}"
+    if args.offset < 0:
+        raise SystemExit(f"--offset must be at least 0, got {args.offset}")
+    size = f"12x{args.frames}" + (f"+{args.offset}" if args.offset else "") + f"-{args.width}x{args.height}"
     data = Path(args.data or os.path.join(tempfile.gettempdir(), f"stg-seams-scene-{size}"))
-    ensure_demo_scene(data, frames=args.frames, width=args.width, height=args.height)
+    duration = args.frames / DEMO_SCENE["fps"]
+    ensure_demo_scene(data, frames=args.offset + args.frames, width=args.width, height=args.height,
+                      duration=duration)
     ds = load_n3v(data, prefer_png=True)
-    scene = SyntheticScene(seed=0, duration=args.frames / ds.fps)
-    novel = novel_view_dataset(scene, args.frames, ds.fps, args.width, args.height)
+    scene = SyntheticScene(seed=0, duration=duration)
+    novel = novel_view_dataset(scene, args.offset + args.frames, ds.fps, args.width, args.height)
+    if args.offset:
+        ds, novel = later(ds, args.offset, args.frames), later(novel, args.offset, args.frames)
     if args.reverse:
         ds, novel = backwards(ds), backwards(novel)
     config = TrainConfig(iterations=args.iterations, num_points=args.points, seed=args.seed, **dict(args.set))
@@ -134,6 +150,14 @@ def backwards(dataset):
     """A copy of `dataset` whose frames play in the reverse order (frame j is the original's F - 1 - j)."""
     clip = copy.copy(dataset)
     clip.frames = np.ascontiguousarray(np.asarray(dataset.frames)[:, ::-1])
+    return clip
+
+
+def later(dataset, offset: int, count: int):
+    """A copy of `dataset` that begins at its frame `offset` (frame j is the original's offset + j),
+    `count` frames long: a clip of its own, whose time starts there."""
+    clip = copy.copy(dataset)
+    clip.frames = np.ascontiguousarray(np.asarray(dataset.frames)[:, offset:offset + count])
     return clip
 
 

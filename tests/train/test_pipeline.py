@@ -210,3 +210,19 @@ def test_velocity_rates_follow_the_run_length(dataset):
     assert {k: v for k, v in stretched.items() if k not in ("motion", "omega")} == \
         {k: v for k, v in reference.items() if k not in ("motion", "omega")}
     assert rates(iterations=30000)["motion"] == pytest.approx(reference["motion"])
+
+
+def test_demo_scene_duration_keeps_a_longer_clips_frames(tmp_path):
+    """ensure_demo_scene(duration=...) renders the first frames of a longer clip (its fader's timing),
+    which bench/seams.py --offset relies on; without it, a shorter clip times its fader to itself."""
+    import numpy as np
+
+    from stg_train.pipeline import ensure_demo_scene
+    sizes = dict(cameras=2, width=32, height=24)
+    frames = lambda d: np.asarray(load_n3v(d, prefer_png=True).frames)  # noqa: E731
+    long = frames(ensure_demo_scene(tmp_path / "long", frames=10, fps=4.0, **sizes))
+    early = ensure_demo_scene(tmp_path / "early", frames=4, fps=4.0, duration=2.5, **sizes)
+    alone = frames(ensure_demo_scene(tmp_path / "alone", frames=4, fps=4.0, **sizes))
+    assert json.loads((early / "scene.json").read_text())["duration"] == 2.5
+    assert np.array_equal(frames(early), long[:, :4])
+    assert not np.array_equal(alone, long[:, :4])  # the fader is fully in at frame 2 of a 4-frame clip
