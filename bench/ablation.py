@@ -72,12 +72,14 @@ VARIANTS = {
     "unstretched-rates": ("30k-step velocity rates (reference)", {"stretch_rates": False}),
     "t-center-random": ("new Gaussians' temporal centres random (reference)",
                         {"thresholds": {"new_t_center": "random"}}),
+    "t-center-mean": ("new Gaussians' temporal centres at the mean hot time (before 2026-12-04)",
+                      {"thresholds": {"new_t_center": "gradient"}}),
 }
 #: The paper's Table 4 (the default variants).
 TABLE4 = ("full", "no-temporal-opacity", "no-motion", "no-rotation", "no-feature-splatting", "no-guided")
 #: The rows of docs/training.md's table of deviations from the reference (bench/ablation.py --deviations).
 DEVIATIONS = ("full", "stat-summed", "prune-reference", "guided-reference", "separate-rotation", "scale-lr-reference",
-              "sfm-init", "zero-motion", "unstretched-rates", "t-center-random")
+              "sfm-init", "zero-motion", "unstretched-rates", "t-center-random", "t-center-mean")
 
 
 FIGURES = ("psnr", "dssim1", "dynamic_psnr", "static_psnr", "dynamic_ssim", "static_ssim", "dynamic_fraction")

@@ -3,7 +3,7 @@
 Thresholds and schedule follow the reference implementation (N3V settings, 30k iterations): densify
 from 500 every 100 iterations for 6 rounds (gradient threshold 2e-4 in NDC units, percent_dense 0.01,
 split into 2 with scale / 1.6, cloned and split Gaussians get a random temporal centre; ours centres
-them where in time their parent was hot, Thresholds.new_t_center), prune opacity
+them at a time where their parent was hot, Thresholds.new_t_center), prune opacity
 < 0.005 every 100 iterations until 7k, opacity reset to <= 0.01 every 3000 until 9k, Gaussians outside
 the initial box removed at 10k. Schedule.scaled(total) maps these onto a run of `total` iterations.
 The gradient statistic is gsplat's (per view, independent of the batch size; the reference's, one
@@ -28,7 +28,7 @@ from .schedule import Schedule
 #: Thresholds.grad_statistic values.
 GRAD_STATISTICS = ("per-view", "summed")
 #: Thresholds.new_t_center values.
-NEW_T_CENTERS = ("gradient", "random", "parent")
+NEW_T_CENTERS = ("gradient", "sampled", "random", "parent")
 
 
 @dataclass(frozen=True)
@@ -42,11 +42,16 @@ class Thresholds:
     max_screen_radius: float = 20.0  # pixels; pruned when bigger, after the first opacity reset
     max_world_scale: float = 0.1  # x extent; pruned when bigger, after the first opacity reset
     reset_opacity: float = 0.01
-    # the temporal centre of cloned and split Gaussians: "gradient" (the mean normalised time of the steps
-    # that made their parent hot, weighted by its screen gradient at each: new Gaussians go where in time
-    # the error was, and their motion is re-expanded there so that they keep the parent's trajectory),
-    # "random" (uniform in [0, 1), the reference's; `recentre` below) or "parent" (the parent's centre)
-    new_t_center: str = "gradient"
+    # the temporal centre of cloned and split Gaussians, where in time their parent was hot, over the
+    # steps since the last densification: "sampled" (one of those steps' times, drawn with probability
+    # in proportion to the parent's screen gradient there, a weighted reservoir sample), "gradient"
+    # (their mean, weighted the same way; the default before 2026-12-04: a parent hot at two times sent
+    # its copies between them, and the mean of a long-lived parent's hot times lies near the middle of
+    # the clip, which left a segment's edges with few short-lived Gaussians), "random" (uniform in
+    # [0, 1), the reference's; `recentre` below) or "parent" (the parent's centre). With "sampled" and
+    # "gradient" the new Gaussians' motion is re-expanded about their new centre, so that they keep the
+    # parent's trajectory
+    new_t_center: str = "sampled"
     # a step counts in a Gaussian's mean gradient only when its temporal opacity factor
     # exp(-(dt / s_t)^2) at the step's time is above this (0: every step it is on screen, the reference)
     min_temporal_opacity: float = 0.0
@@ -99,6 +104,7 @@ class DensityControl(Strategy):
         self.grad_sum = torch.zeros(0)  # (N,) sum of NDC gradient norms (Thresholds.grad_statistic)
         self.grad_count = torch.zeros(0)  # (N,) views (per-view) or steps (summed) that saw the Gaussian
         self.grad_time = torch.zeros(0)  # (N,) the same gradient norms times their step's normalised time
+        self.hot_sample = torch.zeros(0)  # (N,) one step's normalised time, drawn in proportion to its norm
         self.max_radius = torch.zeros(0)  # (N,) largest screen radius (pixels) since the last refine
         self.rounds_done = 0
         self.log: list[dict] = []  # one entry per refine step (counts), for reports
@@ -111,15 +117,16 @@ class DensityControl(Strategy):
             self.grad_sum = torch.cat([self.grad_sum, torch.zeros(short)])
             self.grad_count = torch.cat([self.grad_count, torch.zeros(short)])
             self.grad_time = torch.cat([self.grad_time, torch.zeros(short)])
+            self.hot_sample = torch.cat([self.hot_sample, torch.zeros(short)])
             self.max_radius = torch.cat([self.max_radius, torch.zeros(short)])
         elif short < 0:
             raise RuntimeError("DensityControl: Gaussians were removed outside DensityControl")
 
     def accumulate(self, renders: list, tau: float, present=None) -> None:
         """Add one step's statistics. renders: (camera, splat.RenderOutput) for every view of the batch;
-        tau: the step's normalised time (each norm added is also added times tau, for new_t_center
-        "gradient"); present: optional (N,) bool on the CPU, the Gaussians that exist at the step's time
-        (others do not count).
+        tau: the step's normalised time (each norm added is also added times tau, and may replace the
+        Gaussian's sampled time, for new_t_center "gradient" and "sampled"); present: optional (N,)
+        bool on the CPU, the Gaussians that exist at the step's time (others do not count).
 
         Screen gradients are converted from pixels to NDC units (x W/2, H/2). With grad_statistic
         "per-view" (gsplat's default strategy) each view's gradient is multiplied by the number of views
@@ -156,6 +163,9 @@ class DensityControl(Strategy):
         self.grad_sum += norm
         self.grad_time += norm * tau
         self.grad_count += seen
+        if self.thresholds.new_t_center == "sampled":  # replace the sample with probability norm / sum
+            take = torch.rand(norm.shape[0]) * self.grad_sum < norm
+            self.hot_sample = torch.where(take, tau, self.hot_sample)
 
     # -- the plug-in entry point ------------------------------------------------------------------------
     def step_post_backward(self, params: STGParams, optimizer: torch.optim.Optimizer, step: int,
@@ -193,12 +203,12 @@ class DensityControl(Strategy):
         keep_cpu = keep.cpu()
         keep_gaussians(params, optimizer, keep)
         self.grad_sum, self.grad_count = self.grad_sum[keep_cpu], self.grad_count[keep_cpu]
-        self.grad_time = self.grad_time[keep_cpu]
+        self.grad_time, self.hot_sample = self.grad_time[keep_cpu], self.hot_sample[keep_cpu]
         self.max_radius = self.max_radius[keep_cpu]
 
     def _reset_stats(self, n: int) -> None:
         self.grad_sum, self.grad_count, self.max_radius = torch.zeros(n), torch.zeros(n), torch.zeros(n)
-        self.grad_time = torch.zeros(n)
+        self.grad_time, self.hot_sample = torch.zeros(n), torch.zeros(n)
 
     def _prune_mask(self, params: STGParams, step: int, big: bool) -> Tensor:
         """(N,) bool on the CPU: Gaussians to remove: low opacity, and with `big` after the first opacity
@@ -255,13 +265,18 @@ class DensityControl(Strategy):
 
     def _centred_in_time(self, new: dict[str, Tensor], parents: Tensor) -> dict[str, Tensor]:
         """The new Gaussians `new` (raw rows; row k a copy of Gaussian parents[k], (K,) indices into the
-        statistics) with their temporal centres set by thresholds.new_t_center, "gradient" or "random".
+        statistics) with their temporal centres set by thresholds.new_t_center, "gradient", "sampled" or
+        "random".
         A parent whose hot time is unknown (a checkpoint from before it was kept) passes on its own."""
         th = self.thresholds
         if th.new_t_center == "random":
             t_center = torch.rand(parents.shape[0], 1).to(new["t_center"].device)
             return {**new, **(recentred(new, t_center) if th.recentre else {}), "t_center": t_center}
-        hot_time = (self.grad_time[parents] / self.grad_sum[parents]).reshape(-1, 1).to(new["t_center"].device)
+        if th.new_t_center == "sampled":
+            hot_time = torch.where(self.grad_sum[parents] > 0, self.hot_sample[parents], math.nan)
+        else:
+            hot_time = self.grad_time[parents] / self.grad_sum[parents]
+        hot_time = hot_time.reshape(-1, 1).to(new["t_center"].device)
         t_center = torch.where(torch.isfinite(hot_time), hot_time, new["t_center"])
         return {**new, **recentred(new, t_center), "t_center": t_center}
 
@@ -273,13 +288,14 @@ class DensityControl(Strategy):
     # -- checkpoints -----------------------------------------------------------------------------------
     def state_dict(self) -> dict:
         return {"grad_sum": self.grad_sum.clone(), "grad_count": self.grad_count.clone(),
-                "grad_time": self.grad_time.clone(),
+                "grad_time": self.grad_time.clone(), "hot_sample": self.hot_sample.clone(),
                 "max_radius": self.max_radius.clone(), "rounds_done": self.rounds_done, "log": list(self.log),
                 "schedule": asdict(self.schedule), "thresholds": asdict(self.thresholds), "extent": self.extent}
 
     def load_state_dict(self, state: dict) -> None:
         self.grad_sum, self.grad_count = state["grad_sum"].clone(), state["grad_count"].clone()
-        # a checkpoint from before new_t_center "gradient": the next round's parents pass on their centres
+        # a checkpoint from before the hot times were kept: the next round's parents pass on their centres
         self.grad_time = state.get("grad_time", torch.full_like(self.grad_sum, math.nan)).clone()
+        self.hot_sample = state.get("hot_sample", torch.full_like(self.grad_sum, math.nan)).clone()
         self.max_radius = state["max_radius"].clone()
         self.rounds_done, self.log = int(state["rounds_done"]), list(state["log"])

@@ -182,6 +182,7 @@ def test_new_gaussians_are_centred_where_their_parent_was_hot_on_its_trajectory(
     from stg_train.params import gaussians_at
 
     params, optimizer, dc = _setup(n=4, extent=1.0)
+    dc.thresholds = Thresholds(new_t_center="gradient")  # the mean hot time (sampled: the next test)
     log_scale = torch.full((4, 3), math.log(0.005))
     log_scale[3] = math.log(0.05)  # Gaussian 3 splits, Gaussian 0 is cloned
     _set(params, optimizer, "log_scale", log_scale)
@@ -207,7 +208,7 @@ def test_new_gaussians_are_centred_where_their_parent_was_hot_on_its_trajectory(
 
 def test_the_hot_time_is_the_gradient_weighted_mean_of_the_steps():
     params, optimizer, _ = _setup(n=2)
-    dc = DensityControl(Schedule(refine_start=1000), 1.0)
+    dc = DensityControl(Schedule(refine_start=1000), 1.0, Thresholds(new_t_center="gradient"))
     cam = Camera(50, 50, 16, 12, 32, 24, np.eye(4))
     for tau, weight in ((0.0, 1.0), (1.0, 3.0)):
         means2d = torch.zeros(2, 2, requires_grad=True)
@@ -215,6 +216,30 @@ def test_the_hot_time_is_the_gradient_weighted_mean_of_the_steps():
         out = RenderOutput(None, None, None, means2d, torch.full((2,), 3), torch.ones(2, dtype=torch.bool))
         dc.step_post_backward(params, optimizer, 1, StepContext(None, 0, tau, [(cam, out)], None, None))
     torch.testing.assert_close(dc.grad_time / dc.grad_sum, torch.tensor([0.75, 0.75]))
+
+
+def test_the_sampled_hot_time_is_one_of_the_steps_drawn_by_gradient():
+    """new_t_center "sampled": each Gaussian keeps one step's time, drawn in proportion to its screen
+    gradient there (a weighted reservoir); a parent hot at times 0 and 1 sends its copies to either,
+    never to the mean 0.75 where it was not hot, and new Gaussians are centred at the sample."""
+    n = 4000
+    params, optimizer, _ = _setup(n=n, extent=1.0)
+    dc = DensityControl(Schedule(refine_start=1000), 1.0, Thresholds(new_t_center="sampled"))
+    cam = Camera(50, 50, 16, 12, 32, 24, np.eye(4))
+    torch.manual_seed(0)
+    for tau, weight in ((0.0, 1.0), (0.5, 0.0), (1.0, 3.0)):
+        means2d = torch.zeros(n, 2, requires_grad=True)
+        (means2d[:, 0] * weight).sum().backward()
+        out = RenderOutput(None, None, None, means2d, torch.full((n,), 3), torch.ones(n, dtype=torch.bool))
+        dc.step_post_backward(params, optimizer, 1, StepContext(None, 0, tau, [(cam, out)], None, None))
+    assert set(dc.hot_sample.tolist()) == {0.0, 1.0}
+    assert abs((dc.hot_sample == 1.0).float().mean().item() - 0.75) < 0.03  # 3 / (1 + 3), 4000 draws
+    torch.testing.assert_close(dc.grad_time / dc.grad_sum, torch.full((n,), 0.75))  # the mean rule's
+    _set(params, optimizer, "log_scale", torch.full((n, 3), math.log(0.005)))
+    sample = dc.hot_sample.clone()
+    dc.densify_and_prune(params, optimizer, step=600)
+    assert dc.log[-1]["cloned"] == n
+    torch.testing.assert_close(params["t_center"].detach()[n:].reshape(-1), sample)
 
 
 @pytest.mark.parametrize("rule", ["random", "parent"])
@@ -242,7 +267,7 @@ def test_a_checkpoint_without_hot_times_passes_the_parents_centres_on():
     dc._fit(3)
     _hot_at(dc, slice(None), times=[0.9], norms=[10 * dc.thresholds.grad])
     state = dc.state_dict()
-    del state["grad_time"]
+    del state["grad_time"], state["hot_sample"]
     dc.load_state_dict(state)
     dc.densify_and_prune(params, optimizer, step=600)
     torch.testing.assert_close(params["t_center"].detach()[3:].reshape(-1), torch.tensor([0.2, 0.4, 0.6]))
