@@ -4,7 +4,7 @@ played by the runtime Player, scored frame by frame against the lossless ground 
 
     python bench/seams.py [--frames 60] [--segment-frames 30] [--iterations 1500] [--points 8000]
                           [--width 160] [--height 120] [--seed 0] [--set KEY=VALUE] [--crossfades B,...]
-                          [--one-frame] [--json PATH]
+                          [--one-frame] [--offset O] [--reverse] [--windows] [--json PATH]
 
 Views: the held-out camera cam00 and the two novel rig views of stg_train.synthetic.novel_view_dataset.
 Prints, over those views:
