@@ -98,7 +98,7 @@ def main() -> None:
     args = ap.parse_args()
 
     if args.offset < 0:
-        raise SystemExit(f"--offset must be at least 0, got {args.offset}")
+        ap.error(f"--offset must be at least 0, got {args.offset}")
     size = f"12x{args.frames}" + (f"+{args.offset}" if args.offset else "") + f"-{args.width}x{args.height}"
     data = Path(args.data or os.path.join(tempfile.gettempdir(), f"stg-seams-scene-{size}"))
     duration = args.frames / DEMO_SCENE["fps"]
