@@ -108,9 +108,9 @@ def main() -> None:
     scene = SyntheticScene(seed=0, duration=duration)
     novel = novel_view_dataset(scene, args.offset + args.frames, ds.fps, args.width, args.height)
     if args.offset:
-        ds, novel = later(ds, args.offset, args.frames), later(novel, args.offset, args.frames)
+        ds, novel = (reframed(d, slice(args.offset, args.offset + args.frames)) for d in (ds, novel))
     if args.reverse:
-        ds, novel = backwards(ds), backwards(novel)
+        ds, novel = (reframed(d, slice(None, None, -1)) for d in (ds, novel))
     config = TrainConfig(iterations=args.iterations, num_points=args.points, seed=args.seed, **dict(args.set))
     out = Path(args.out or tempfile.mkdtemp(prefix="stg-seams-"))
     print(f"{ds}; segments of {args.segment_frames} frames, {args.iterations} steps each, {args.points} initial "
@@ -146,18 +146,12 @@ def main() -> None:
                                                "by_crossfade": by_crossfade}, indent=1) + "\n")
 
 
-def backwards(dataset):
-    """A copy of `dataset` whose frames play in the reverse order (frame j is the original's F - 1 - j)."""
+def reframed(dataset, frames: slice):
+    """A copy of `dataset` whose frame j is the original's frames[j] (a slice: slice(O, O + F) for the
+    clip that begins at frame O, slice(None, None, -1) to play it backwards): a clip of its own, whose
+    time starts at its frame 0."""
     clip = copy.copy(dataset)
-    clip.frames = np.ascontiguousarray(np.asarray(dataset.frames)[:, ::-1])
-    return clip
-
-
-def later(dataset, offset: int, count: int):
-    """A copy of `dataset` that begins at its frame `offset` (frame j is the original's offset + j),
-    `count` frames long: a clip of its own, whose time starts there."""
-    clip = copy.copy(dataset)
-    clip.frames = np.ascontiguousarray(np.asarray(dataset.frames)[:, offset:offset + count])
+    clip.frames = np.ascontiguousarray(np.asarray(dataset.frames)[:, frames])
     return clip
 
 

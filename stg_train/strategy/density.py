@@ -105,6 +105,7 @@ class DensityControl(Strategy):
         self.grad_count = torch.zeros(0)  # (N,) views (per-view) or steps (summed) that saw the Gaussian
         self.grad_time = torch.zeros(0)  # (N,) the same gradient norms times their step's normalised time
         self.hot_sample = torch.zeros(0)  # (N,) one step's normalised time, drawn in proportion to its norm
+        # (NaN until a step adds a norm)
         self.max_radius = torch.zeros(0)  # (N,) largest screen radius (pixels) since the last refine
         self.rounds_done = 0
         self.log: list[dict] = []  # one entry per refine step (counts), for reports
@@ -117,7 +118,7 @@ class DensityControl(Strategy):
             self.grad_sum = torch.cat([self.grad_sum, torch.zeros(short)])
             self.grad_count = torch.cat([self.grad_count, torch.zeros(short)])
             self.grad_time = torch.cat([self.grad_time, torch.zeros(short)])
-            self.hot_sample = torch.cat([self.hot_sample, torch.zeros(short)])
+            self.hot_sample = torch.cat([self.hot_sample, torch.full((short,), math.nan)])
             self.max_radius = torch.cat([self.max_radius, torch.zeros(short)])
         elif short < 0:
             raise RuntimeError("DensityControl: Gaussians were removed outside DensityControl")
@@ -208,7 +209,7 @@ class DensityControl(Strategy):
 
     def _reset_stats(self, n: int) -> None:
         self.grad_sum, self.grad_count, self.max_radius = torch.zeros(n), torch.zeros(n), torch.zeros(n)
-        self.grad_time, self.hot_sample = torch.zeros(n), torch.zeros(n)
+        self.grad_time, self.hot_sample = torch.zeros(n), torch.full((n,), math.nan)
 
     def _prune_mask(self, params: STGParams, step: int, big: bool) -> Tensor:
         """(N,) bool on the CPU: Gaussians to remove: low opacity, and with `big` after the first opacity
@@ -272,10 +273,8 @@ class DensityControl(Strategy):
         if th.new_t_center == "random":
             t_center = torch.rand(parents.shape[0], 1).to(new["t_center"].device)
             return {**new, **(recentred(new, t_center) if th.recentre else {}), "t_center": t_center}
-        if th.new_t_center == "sampled":
-            hot_time = torch.where(self.grad_sum[parents] > 0, self.hot_sample[parents], math.nan)
-        else:
-            hot_time = self.grad_time[parents] / self.grad_sum[parents]
+        hot_time = self.hot_sample[parents] if th.new_t_center == "sampled" else \
+            self.grad_time[parents] / self.grad_sum[parents]
         hot_time = hot_time.reshape(-1, 1).to(new["t_center"].device)
         t_center = torch.where(torch.isfinite(hot_time), hot_time, new["t_center"])
         return {**new, **recentred(new, t_center), "t_center": t_center}
