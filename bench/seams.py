@@ -30,12 +30,14 @@ frames (its edge, A's interior) and positive at A's last frames (A's edge, B's i
 with the scene's frame is the scene's, one that moves to the new first or last frame is the method's.
 
 --offset O trains and scores the scene's frames O .. O + frames - 1 instead of 0 .. frames - 1 (the
-same scene: its fader keeps the timing of a clip of --frames frames), so its seams fall O frames later
-in the scene. Frame j of the output is the scene's frame O + j. A seam frame's PSNR against the same
-scene frame's in an --offset run, where it lies inside a segment, is what the seam costs there, free
-of how hard that frame of the scene is:
+same scene: its motion and its fader's timing are those of the clip of --frames frames, continued
+before and after it; SyntheticScene's start), so its seams and ends fall O frames later in the scene
+(earlier when O is negative). Frame j of the output is the scene's frame O + j. A seam frame's, or a
+video's end frame's, PSNR against the same scene frame's in an --offset run, where it lies inside a
+segment, is what the seam or the end costs there, free of how hard that frame of the scene is:
 
     python bench/seams.py --frames 150 --segment-frames 50 --iterations 3000 --offset 25
+    python bench/seams.py --frames 60 --segment-frames 30 --iterations 1500 --offset -15   # frame 0 inside
 
 The figures are stg_train.metrics.evaluate_seams over the views' evaluate_player rows; the clip is the demo scene's (stg_train.synthetic),
 written once per size into a temp folder (or --data). Training settings are the defaults of
@@ -97,18 +99,15 @@ def main() -> None:
                          "alone; their difference where they overlap (see above)")
     args = ap.parse_args()
 
-    if args.offset < 0:
-        ap.error(f"--offset must be at least 0, got {args.offset}")
-    size = f"12x{args.frames}" + (f"+{args.offset}" if args.offset else "") + f"-{args.width}x{args.height}"
+    size = f"12x{args.frames}" + (f"@{args.offset:+d}" if args.offset else "") + f"-{args.width}x{args.height}"
     data = Path(args.data or os.path.join(tempfile.gettempdir(), f"stg-seams-scene-{size}"))
-    duration = args.frames / DEMO_SCENE["fps"]
-    ensure_demo_scene(data, frames=args.offset + args.frames, width=args.width, height=args.height,
-                      duration=duration)
+    fps = DEMO_SCENE["fps"]
+    duration, start = args.frames / fps, args.offset / fps
+    ensure_demo_scene(data, frames=args.frames, width=args.width, height=args.height, duration=duration,
+                      start=start)
     ds = load_n3v(data, prefer_png=True)
-    scene = SyntheticScene(seed=0, duration=duration)
-    novel = novel_view_dataset(scene, args.offset + args.frames, ds.fps, args.width, args.height)
-    if args.offset:
-        ds, novel = (reframed(d, slice(args.offset, args.offset + args.frames)) for d in (ds, novel))
+    scene = SyntheticScene(seed=0, duration=duration, start=start)
+    novel = novel_view_dataset(scene, args.frames, ds.fps, args.width, args.height)
     if args.reverse:
         ds, novel = (reframed(d, slice(None, None, -1)) for d in (ds, novel))
     config = TrainConfig(iterations=args.iterations, num_points=args.points, seed=args.seed, **dict(args.set))
@@ -147,9 +146,8 @@ def main() -> None:
 
 
 def reframed(dataset, frames: slice):
-    """A copy of `dataset` whose frame j is the original's frames[j] (a slice: slice(O, O + F) for the
-    clip that begins at frame O, slice(None, None, -1) to play it backwards): a clip of its own, whose
-    time starts at its frame 0."""
+    """A copy of `dataset` whose frame j is the original's frames[j] (a slice: slice(None, None, -1)
+    plays it backwards): a clip of its own, whose time starts at its frame 0."""
     clip = copy.copy(dataset)
     clip.frames = np.ascontiguousarray(np.asarray(dataset.frames)[:, frames])
     return clip

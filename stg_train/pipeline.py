@@ -51,13 +51,14 @@ from .trainer import Trainer, TrainConfig
 
 
 def ensure_demo_scene(data, announce: bool = False, supersample: int = 1, seed: int = 0, layout: int = 0,
-                      duration: float | None = None, **sizes) -> Path:
+                      duration: float | None = None, start: float = 0.0, **sizes) -> Path:
     """The demo's synthetic scene, in the N3V layout, at `data`: written unless it is there already.
     sizes: any of DEMO_SCENE's cameras, frames, width, height to change; supersample: rays per pixel
     side (stg_train.synthetic.write_n3v; 1, the demo's, leaves the ground truth aliased where textures
     are finer than a pixel); seed, layout: SyntheticScene's (another scene: textures and object set);
     duration: SyntheticScene's, the seconds over which the fader appears and vanishes (default: the
-    clip's, frames / fps); announce: say so on stderr before writing."""
+    clip's, frames / fps); start: SyntheticScene's, the scene's time at the first frame, seconds (a clip
+    that begins later in the scene, or before it); announce: say so on stderr before writing."""
     d = {**DEMO_SCENE, **sizes}
     data = Path(data)
     if not (data / "poses_bounds.npy").exists():
@@ -65,7 +66,7 @@ def ensure_demo_scene(data, announce: bool = False, supersample: int = 1, seed: 
             print(f"writing the synthetic scene ({d['cameras']} cameras x {d['frames']} frames, "
                   f"{d['width']}x{d['height']}) to {data}", file=sys.stderr)
         duration = d["frames"] / d["fps"] if duration is None else duration
-        scene = SyntheticScene(seed=seed, duration=duration, layout=layout)
+        scene = SyntheticScene(seed=seed, duration=duration, layout=layout, start=start)
         write_n3v(data, scene, num_cameras=d["cameras"],
                   num_frames=d["frames"], fps=d["fps"], width=d["width"], height=d["height"],
                   supersample=supersample)

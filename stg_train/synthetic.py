@@ -170,20 +170,23 @@ class SyntheticScene:
 
     seed: chooses the noise textures and small colour variations; duration: seconds over which the
     fader appears and vanishes (use num_frames / fps); specular: strength of the highlight on
-    "shiny_sphere" (0 turns it off); blur: standard deviation in pixels of the camera's optical blur,
+    "shiny_sphere" (0 turns it off); start: the scene's time at t = 0, seconds (a clip that begins
+    `start` seconds into the scene, or before it when negative: its motion and its fader's timing are
+    those of the scene at start + t); blur: standard deviation in pixels of the camera's optical blur,
     a Gaussian applied to every rendered image (0 turns it off; the default 1 px band-limits the
     textures like a real lens, which keeps aliasing down and the mp4 videos within about 32 dB PSNR
     of the PNG frames); layout: the object set, 0 (the default scene) or 1 (see the module docstring).
     """
 
     def __init__(self, seed: int = 0, duration: float = 1.0, specular: float = 0.7, shininess: float = 60.0,
-                 blur: float = 1.0, layout: int = 0):
+                 blur: float = 1.0, layout: int = 0, start: float = 0.0):
         if layout not in LAYOUTS:
             raise ValueError(f"layout must be one of {sorted(LAYOUTS)}, got {layout!r}")
         self.layout = int(layout)
         self.seed = int(seed)
         self.blur = float(blur)
         self.duration = float(duration)
+        self.start = float(start)
         self.specular = float(specular)
         self.shininess = float(shininess)
         rng = np.random.default_rng(self.seed)
@@ -213,7 +216,7 @@ class SyntheticScene:
     # -- animation -------------------------------------------------------------------------------
     def moving_sphere_center(self, t: float) -> np.ndarray:
         """(3,) centre of "moving_sphere" at time t (seconds); a closed path (period 3 s in layout 0)."""
-        p = self._path
+        p, t = self._path, self.start + t
         w = 2 * np.pi / p["period"]
         (cx, cy, cz), (ax, ay, az) = p["centre"], p["amplitude"]
         return np.array([cx + ax * np.sin(w * t), cy + ay * np.sin(2 * w * t), cz + az * (1 - np.cos(w * t))])
@@ -221,12 +224,12 @@ class SyntheticScene:
     def rotating_box_rotation(self, t: float) -> np.ndarray:
         """(3, 3) box-to-world rotation of "rotating_box" at time t (about the y axis; 1.2 rad/s in
         layout 0)."""
-        return _rot_y(self._spin * t)
+        return _rot_y(self._spin * (self.start + t))
 
     def fader_alpha(self, t: float) -> float:
         """Opacity of "fader" at time t: 0, ramps to 1 over [0.25, 0.35] x duration, 1, back to 0 over
         [0.65, 0.75] x duration."""
-        x = t / self.duration if self.duration > 0 else 0.0
+        x = (self.start + t) / self.duration if self.duration > 0 else 0.0
         return float(np.clip(min((x - 0.25) / 0.1, (0.75 - x) / 0.1), 0.0, 1.0))
 
     def object_center(self, name: str, t: float = 0.0) -> np.ndarray:
@@ -510,7 +513,7 @@ class SyntheticScene:
     # -- provenance --------------------------------------------------------------------------------
     def settings(self) -> dict:
         return {"generator": "stg_train.synthetic.SyntheticScene", "seed": self.seed, "layout": self.layout,
-                "duration": self.duration,
+                "duration": self.duration, "start": self.start,
                 "specular": self.specular, "shininess": self.shininess, "blur": self.blur,
                 "world_axes": "OpenCV: x right, y down, z forward"}
 

@@ -226,3 +226,21 @@ def test_demo_scene_duration_keeps_a_longer_clips_frames(tmp_path):
     assert json.loads((early / "scene.json").read_text())["duration"] == 2.5
     assert np.array_equal(frames(early), long[:, :4])
     assert not np.array_equal(alone, long[:, :4])  # the fader is fully in at frame 2 of a 4-frame clip
+
+
+def test_demo_scene_start_shows_the_same_clip_later_or_earlier(tmp_path):
+    """ensure_demo_scene(start=...) renders the same scene from `start` seconds on (before its frame 0
+    when negative), which bench/seams.py --offset relies on to put a video's end frame inside a
+    segment."""
+    import numpy as np
+
+    from stg_train.pipeline import ensure_demo_scene
+    sizes = dict(cameras=2, width=32, height=24, fps=4.0, duration=2.5)
+    frames = lambda d: np.asarray(load_n3v(d, prefer_png=True).frames)  # noqa: E731
+    long = frames(ensure_demo_scene(tmp_path / "long", frames=10, **sizes))
+    later = ensure_demo_scene(tmp_path / "later", frames=4, start=1.0, **sizes)  # scene frames 4-7
+    earlier = frames(ensure_demo_scene(tmp_path / "earlier", frames=8, start=-1.0, **sizes))  # -4 to 3
+    assert json.loads((later / "scene.json").read_text())["start"] == 1.0
+    assert np.array_equal(frames(later), long[:, 4:8])
+    assert np.array_equal(earlier[:, 4:], long[:, :4])
+    assert not np.array_equal(earlier[:, :4], long[:, :4])  # the sphere was elsewhere before frame 0
