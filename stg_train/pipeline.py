@@ -294,7 +294,11 @@ def train(dataset, out, config: TrainConfig, resume: bool = False, quiet: bool =
     lpips = _lpips(quiet) if lpips is None else lpips  # (said after the run's own settings and notices)
     if trainer.step < trainer.steps:
         _run_training(trainer, ckpt, quiet, callback, stop_on_signal)
-    report = export_trainer(trainer, out / "model.stg", check=check)
+    with warnings.catch_warnings(record=True) as caught:  # export's ExportWarning: said, the run goes on
+        warnings.simplefilter("always")
+        report = export_trainer(trainer, out / "model.stg", check=check)
+    for w in caught:
+        print(f"stg-train: warning: {w.message}", file=sys.stderr)
     result = evaluate_player(Player(report.path, device="cpu"), dataset.shown(), lpips=lpips)
     metrics = {"heldout": heldout(result), "iterations": trainer.step, "train_seconds": trainer.seconds,
                "gaussians": trainer.params.count, "file_bytes": report.bytes,
