@@ -85,7 +85,7 @@ class TrainConfig:
     pose_refine: bool = False
     lens_falloff: tuple | None = None
     camera_learning_rates: dict = field(default_factory=dict)
-    segment_context: int = 2
+    segment_context: int = 4
     edge_weight: float = 2.0
 
     def for_dataset(self, dataset) -> "TrainConfig":

@@ -108,8 +108,8 @@ def test_killed_worker_resumes_from_its_checkpoint(local_ray, scene_dir, sequent
     for index, pid, step in rows:
         if index == 1:
             tries.setdefault(pid, []).append(step)
-    # killed at 7, resumed at 6; 15 steps: 10 x 6 frames (4 and 2 of context, the default) / 4 shown
-    assert list(tries.values()) == [list(range(1, 8)), list(range(6, 16))]
+    # killed at 7, resumed at 6; 20 steps: 10 x 8 frames (4 and 4 of context, the default) / 4 shown
+    assert list(tries.values()) == [list(range(1, 8)), list(range(6, 21))]
     _assert_same_model(out / "model.stg", sequential / "model.stg")
 
 
