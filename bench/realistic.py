@@ -15,7 +15,9 @@ refined.
 
 Variants: plain (neither), appearance, pose (pose_refine), both, colour (appearance without its
 vignetting term), known (both, with the capture's true vignetting given as TrainConfig.lens_falloff, as
-a flat-field calibration would give it), known-appearance (the same without pose refinement). Each seed
+a flat-field calibration would give it), known-appearance (the same without pose refinement), measured
+and measured-appearance (the same two with the vignetting measured from the cameras' overlap before
+training, TrainConfig.lens_falloff "auto": stg_train.self_calibration). Each seed
 is one realistic capture
 (CaptureModel(seed=SEED), the knobs' defaults unless --capture changes them, e.g. --capture noise=0)
 and the training seed; the scene is the demo's (12 cameras x 30 frames at 160x120 by default). Training
@@ -48,7 +50,9 @@ VARIANTS = {"plain": {}, "appearance": {"appearance": True}, "pose": {"pose_refi
             "both": {"appearance": True, "pose_refine": True},
             "colour": {"appearance": True, "appearance_vignetting": False},
             "known": {"appearance": True, "pose_refine": True, "lens_falloff": "capture"},
-            "known-appearance": {"appearance": True, "lens_falloff": "capture"}}
+            "known-appearance": {"appearance": True, "lens_falloff": "capture"},
+            "measured": {"appearance": True, "pose_refine": True, "lens_falloff": "auto"},
+            "measured-appearance": {"appearance": True, "lens_falloff": "auto"}}
 
 
 def parse_setting(text: str) -> tuple[str, object]:
@@ -150,6 +154,8 @@ def main() -> None:
                 trainer.train(progress=False)
                 row = {"seed": seed, "capture": capture_name, "variant": variant, "seconds": time.perf_counter() - start,
                        "gaussians": trainer.params.count, "views": score(trainer, views)}
+                if trainer.falloff_estimate is not None:
+                    row["measured_falloff"] = list(trainer.falloff_estimate.k)
                 if trainer.appearance is not None:
                     summary = trainer.appearance.summary()
                     row["vignetting"] = np.mean([a["vignetting"] for a in summary], axis=0).tolist()
@@ -170,7 +176,8 @@ def main() -> None:
                     f"{row['pose_refined'][0]:.3f} deg {row['pose_refined'][1]:.4f} (gauge removed: "
                     f"{row['pose_stated'][2]:.3f} deg {row['pose_stated'][3]:.4f} -> "
                     f"{row['pose_refined'][2]:.3f} deg {row['pose_refined'][3]:.4f})")
-                extra = "".join(f"  {k} {np.round(row[k], 4).tolist()}" for k in ("vignetting", "correction") if k in row)
+                extra = "".join(f"  {k} {np.round(row[k], 4).tolist()}" for k in ("vignetting", "measured_falloff", "correction")
+                                if k in row)
                 print(f"seed {seed} {capture_name:9s} {variant:10s} {figures}{pose}{extra}  ({row['gaussians']} Gaussians, "
                       f"{row['seconds']:.0f} s)", flush=True)
     print("\nraw / colour-aligned PSNR against the clean lossless frames (held-out camera at its true pose)")

@@ -48,6 +48,8 @@ class TrainConfig:
     camera's pose (stg_train.pose_refine); lens_falloff: the training cameras' known vignetting
     (k1, k2), e.g. from a flat-field calibration, applied to their renders before the loss as
     1 + k1 s + k2 s^2 (stg_train.lens; ValueError outside its range), when the appearance then learns none;
+    "auto" measures it before training from what the training cameras see of the same surfaces
+    (stg_train.self_calibration; the checkpoint keeps the numbers);
     camera_learning_rates: overrides of their rates (keys "matrix", "bias", "vignetting" of
     appearance.APPEARANCE_LR, "rotation", "translation" of pose_refine.POSE_LR); segment_context: for a video trained in segments, how many neighbouring
     frames on each side a segment is also fitted to (as context: it shows only its own frames, and the
@@ -83,7 +85,7 @@ class TrainConfig:
     appearance: bool = False
     appearance_vignetting: bool = True
     pose_refine: bool = False
-    lens_falloff: tuple | None = None
+    lens_falloff: tuple | str | None = None
     camera_learning_rates: dict = field(default_factory=dict)
     segment_context: int = 4
     edge_weight: float = 2.0

@@ -82,10 +82,16 @@ def new_trainer(dataset, config: TrainConfig, out: Path, quiet: bool = False) ->
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             trainer = Trainer(dataset, config, out_dir=out, init_progress=stage("structure from motion"),
-                              motion_progress=stage("initial motion (optical flow)"))
+                              motion_progress=stage("initial motion (optical flow)"),
+                              calibration_progress=stage("lens falloff (the cameras' overlap)"))
     for w in caught:
         print(f"stg-train: warning: {w.message}", file=sys.stderr)
     if not quiet:
+        if trainer.falloff_estimate is not None:
+            e = trainer.falloff_estimate
+            print(f"stg-train: lens falloff measured from the cameras' overlap: K1 {e.k[0]:.3f}, K2 {e.k[1]:.3f} "
+                  f"(corner brightness {e.corner_brightness:.3f}; {e.pairs} pixel pairs at frames "
+                  f"{', '.join(map(str, e.frames))})", file=sys.stderr)
         for line in trainer.initial.describe().splitlines():
             print(f"stg-train: {line}", file=sys.stderr)
     return trainer

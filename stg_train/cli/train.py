@@ -73,8 +73,11 @@ def _edge_weight(text: str) -> float:
     return value
 
 
-def _lens_falloff(text: str) -> tuple[float, float]:
-    """K1[,K2] -> (k1, k2), checked by lens.known_falloff (the brightness within (0, 2] over the image)."""
+def _lens_falloff(text: str) -> tuple[float, float] | str:
+    """K1[,K2] -> (k1, k2), checked by lens.known_falloff (the brightness within (0, 2] over the image);
+    "auto" stays "auto" (measured before training)."""
+    if text == "auto":
+        return text
     try:
         values = [float(v) for v in text.split(",")]
     except ValueError:
@@ -198,13 +201,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="refine each training camera's pose (a small rotation and translation) with the scene; "
                         "writes OUT/refined_cameras.json, and the .stg stores the refined cameras (off by "
                         "default; docs/training.md)")
-    p.add_argument("--lens-falloff", type=_lens_falloff, default=d.lens_falloff, metavar="K1[,K2]",
+    p.add_argument("--lens-falloff", type=_lens_falloff, default=d.lens_falloff, metavar="K1[,K2]|auto",
                    help="the cameras' known vignetting, e.g. from a flat-field calibration or the lens profile: "
                         "brightness 1 + K1 s + K2 s^2, s the squared distance from the principal point over its "
                         "value at the farthest corner (-0.3: 30 %% darker at the corners), applied to every "
                         "training render before the loss, so the .stg holds the scene without it; with "
                         "--appearance, no vignetting is learned then; write --lens-falloff=-0.3,0.05 when "
-                        "K1 is negative and K2 given (default: none; docs/training.md)")
+                        "K1 is negative and K2 given. 'auto' measures it before training from what neighbouring "
+                        "cameras see of the same surfaces at the same instant (for a rig whose lenses share "
+                        "one falloff; about a minute) and prints it (default: none; docs/training.md)")
     p.add_argument("--viewer", nargs="?", type=port, const=8080, default=None, metavar="PORT",
                    help="show the model in the browser while it trains, at http://127.0.0.1:PORT (default "
                         "8080; needs the viewer extra): the current parameters every few seconds, and the "
