@@ -88,7 +88,7 @@ class TrainConfig:
     lens_falloff: tuple | str | None = None
     camera_learning_rates: dict = field(default_factory=dict)
     segment_context: int = 4
-    edge_weight: float = 2.0
+    edge_weight: float = 3.0
 
     def for_dataset(self, dataset) -> "TrainConfig":
         """These settings with the choices left open made: init "auto" (or None) -> default_method(dataset),

@@ -47,8 +47,8 @@ view-volume initial points (--init; the reference uses SfM), initial motion from
 reference's are set for 30000 steps), guided sampling at the error patch's median depth after one
 poor view (the reference: the view's maximum depth, two views), pruning applied at densification,
 scale learning rate 0.005 (the reference's N3V configurations: 0.003), no rotation/motion separation,
-the video's first and last 3 frames drawn twice as often (--edge-weight; the reference draws every
-frame alike).
+the video's first and last 3 frames drawn three times as often (--edge-weight; the reference draws
+every frame alike).
 Exit codes: 0 done, 2 bad data or arguments."""
 
 

@@ -319,11 +319,11 @@ def test_edge_weight_default_and_option():
     from stg_train.cli.train import _config, build_parser
     from stg_train.trainer import EDGE_FRAMES, TrainConfig, frame_weights
 
-    assert TrainConfig().edge_weight == 2.0  # the video's ends drawn twice as often (docs/training.md, "Seams")
+    assert TrainConfig().edge_weight == 3.0  # the video's ends drawn 3 times as often (docs/training.md, "Seams")
     p = frame_weights(30, (0, 0), TrainConfig().edge_weight)
-    assert np.allclose(p[:EDGE_FRAMES] / p[15], 2.0) and np.allclose(p[-EDGE_FRAMES:] / p[15], 2.0)
-    args = build_parser().parse_args(["data", "--out", "run", "--edge-weight", "3"])
-    assert _config(args, "numba").edge_weight == 3.0
+    assert np.allclose(p[:EDGE_FRAMES] / p[15], 3.0) and np.allclose(p[-EDGE_FRAMES:] / p[15], 3.0)
+    args = build_parser().parse_args(["data", "--out", "run", "--edge-weight", "2"])
+    assert _config(args, "numba").edge_weight == 2.0
     assert _config(build_parser().parse_args(["data", "--out", "run", "--edge-weight", "1"]), "numba").edge_weight == 1.0
 
 
