@@ -17,7 +17,8 @@ Variants: plain (neither), appearance, pose (pose_refine), both, colour (appeara
 vignetting term), known (both, with the capture's true vignetting given as TrainConfig.lens_falloff, as
 a flat-field calibration would give it), known-appearance (the same without pose refinement), measured
 and measured-appearance (the same two with the vignetting measured from the cameras' overlap before
-training, TrainConfig.lens_falloff "auto": stg_train.self_calibration). Each seed
+training, TrainConfig.lens_falloff "auto": stg_train.self_calibration), lens-auto (that measurement
+alone, no appearance or pose refinement). Each seed
 is one realistic capture
 (CaptureModel(seed=SEED), the knobs' defaults unless --capture changes them, e.g. --capture noise=0)
 and the training seed; the scene is the demo's (12 cameras x 30 frames at 160x120 by default). Training
@@ -52,6 +53,7 @@ VARIANTS = {"plain": {}, "appearance": {"appearance": True}, "pose": {"pose_refi
             "known": {"appearance": True, "pose_refine": True, "lens_falloff": "capture"},
             "known-appearance": {"appearance": True, "lens_falloff": "capture"},
             "measured": {"appearance": True, "pose_refine": True, "lens_falloff": "auto"},
+            "lens-auto": {"lens_falloff": "auto"},
             "measured-appearance": {"appearance": True, "lens_falloff": "auto"}}
 
 

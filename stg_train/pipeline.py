@@ -248,6 +248,8 @@ def _resume(dataset, ckpt: Path, out: Path, config: TrainConfig, given: dict[str
         new, old = getattr(config, name), getattr(saved, name)
         if name in ("device", "splatter") or new == old:
             continue
+        if name == "lens_falloff" and new == "auto":  # the checkpoint holds the falloff its run measured
+            continue
         if name not in RESUMABLE:
             raise ResumeConflict(f"{option}: {ckpt} was trained with {name} = {old!r}, which a resumed run keeps: "
                                  f"leave {option.split()[0]} out, or start afresh with --force or a new --out")

@@ -209,7 +209,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "--appearance, no vignetting is learned then; write --lens-falloff=-0.3,0.05 when "
                         "K1 is negative and K2 given. 'auto' measures it before training from what neighbouring "
                         "cameras see of the same surfaces at the same instant (for a rig whose lenses share "
-                        "one falloff; about a minute) and prints it (default: none; docs/training.md)")
+                        "one falloff; seconds for the demo's 12 cameras) and prints it; a resumed run keeps what "
+                        "its first run measured (default: none; docs/training.md)")
     p.add_argument("--viewer", nargs="?", type=port, const=8080, default=None, metavar="PORT",
                    help="show the model in the browser while it trains, at http://127.0.0.1:PORT (default "
                         "8080; needs the viewer extra): the current parameters every few seconds, and the "

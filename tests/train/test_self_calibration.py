@@ -56,3 +56,19 @@ def test_the_trainer_measures_auto_and_trains_with_the_numbers(realistic):
     assert trainer.falloff_estimate is not None
     assert trainer.config.lens_falloff == trainer.falloff_estimate.k == trainer.lens_falloff
     assert not trainer.appearance.vignetting  # the falloff is known now: the cameras learn none
+
+
+def test_stg_train_says_what_it_measured_and_a_resumed_run_keeps_it(realistic, tmp_path, capsys):
+    from stg_train.pipeline import train
+
+    dataset, _ = realistic
+    config = TrainConfig(lens_falloff="auto", iterations=2, num_points=500)
+    first = train(dataset, tmp_path, config)
+    said = capsys.readouterr().err
+    assert "lens falloff measured from the cameras' overlap: K1" in said
+    k = first["settings"]["lens_falloff"]
+    assert len(k) == 2 and -0.4 < k[0] < -0.2  # numbers, not "auto": what the checkpoint and metrics keep
+    again = train(dataset, tmp_path, TrainConfig(lens_falloff="auto", iterations=3, num_points=500), resume=True,
+                  given={"lens_falloff": "--lens-falloff auto", "iterations": "--iterations 3"})
+    assert again["settings"]["lens_falloff"] == k and again["iterations"] == 3
+    assert "lens falloff measured" not in capsys.readouterr().err  # not measured again
