@@ -7,7 +7,7 @@ nearly the same thing as a darker rim of the scene, so training takes it into th
 distances from their principal points, though, and that difference is what this module measures:
 
 1. For each training camera c and its `neighbours` nearest training cameras c' (by centre), at a few
-   frames: dense optical flow from c's picture to c''s (OpenCV DIS, on brightness-normalised grey
+   frames: dense optical flow from the picture of c to that of c' (OpenCV DIS, on brightness-normalised grey
    images, downscaled to at most `max_side` pixels), kept where it is consistent forwards and
    backwards, the picture is smooth (no edge to misalign) and neither colour is clipped.
 2. Every such pixel pair gives, per channel, log I_c - log I_c' = g_c - g_c' + log V(s) - log V(s'),
@@ -15,8 +15,8 @@ distances from their principal points, though, and that difference is what this 
    principal point over its value at the farthest corner (stg_train.lens), and log V(s) = a1 s + a2 s^2.
    That is linear in (g, a1, a2): iteratively reweighted least squares (Cauchy weights) with the gains'
    sum held at 0 (only gains relative to the rig's mean can be told from its pictures).
-3. The pictures are corrected by the estimate and the flow is computed again (`rounds` times): flow
-   on pictures that still vignette is biased towards their rims.
+3. The pictures are corrected by the estimate and the flow is computed again (`rounds` times): the
+   flow of pictures that still vignette pulls the estimate towards no falloff (docs/training.md).
 
 The log-polynomial is then written as the trainer's `1 + k1 s + k2 s^2` (a least-squares fit over
 s in [0, 1]). Pinhole and fisheye cameras alike (s is measured in pixels from the principal point).
@@ -44,8 +44,8 @@ MIN_PAIRS = 2_000
 
 class FalloffEstimate(NamedTuple):
     """k: (k1, k2) of the brightness 1 + k1 s + k2 s^2; gains: (C, 3) each training camera's colour
-    gains relative to the rig's mean (rows in dataset.train_cameras order); pairs: pixel pairs fitted;
-    frames: the frames used."""
+    gains relative to the rig's (their geometric mean over the cameras is 1; rows in
+    dataset.train_cameras order); pairs: pixel pairs found in the last round; frames: the frames used."""
 
     k: tuple[float, float]
     gains: np.ndarray
@@ -70,7 +70,7 @@ def estimate_lens_falloff(dataset, frames=None, neighbours: int = 4, rounds: int
     frames = tuple(sorted({0, dataset.num_frames // 2})) if frames is None else tuple(int(f) for f in frames)
     scale = min(1.0, max_side / max(dataset.width, dataset.height))
     pictures = {(c, f): _scaled(dataset.image(c, f), scale) for c in cams for f in frames}
-    radial = {c: _radial(dataset.cameras[c], pictures[c, frames[0]].shape[:2], scale) for c in cams}
+    radial = {c: _radial(dataset.cameras[c], pictures[c, frames[0]].shape[:2]) for c in cams}
     pairs = _neighbour_pairs(dataset, cams, neighbours)
     rng = np.random.default_rng(seed)
     logv, gains, total = np.zeros(2), np.zeros((len(cams), 3)), 0
@@ -101,14 +101,16 @@ def estimate_lens_falloff(dataset, frames=None, neighbours: int = 4, rounds: int
 
 
 def _scaled(image: np.ndarray, scale: float) -> np.ndarray:
+    """(H, W, 3) float32 picture resized by `scale` (area averaging)."""
     if scale == 1.0:
         return image.astype(np.float32)
     h, w = image.shape[:2]
     return cv2.resize(image, (max(1, round(w * scale)), max(1, round(h * scale))), interpolation=cv2.INTER_AREA)
 
 
-def _radial(camera, shape, scale: float) -> np.ndarray:
-    """(h, w) s of each pixel centre of the picture scaled by `scale` (stg_train.appearance.radial)."""
+def _radial(camera, shape) -> np.ndarray:
+    """(h, w) s of each pixel centre of the camera's picture resized to `shape` (h, w)
+    (stg_train.appearance.radial at full size)."""
     h, w = shape
     u = (np.arange(w) + 0.5) * (camera.width / w) - camera.cx
     v = (np.arange(h) + 0.5) * (camera.height / h) - camera.cy
