@@ -32,11 +32,10 @@ from .render import rasterize
 #: values may differ by at most GOLDEN_TOLERANCE, except a fraction GOLDEN_FRACTION of them, which may
 #: differ by up to GOLDEN_MAX: float32 rounding can flip a threshold decision of the splatting rules
 #: (formats/stg-v1.md section 3) at a few pixels, changing them by up to about one 3-sigma-edge contribution.
-#: Two Gaussians at depths equal to float32 rounding (a clone and its parent that stayed together) may
-#: also be taken in either order, which the spec allows too; that changes a pixel by alpha1 alpha2
-#: (c1 - c2), which no constant bounds. So the export check (`export`) fails only on the fraction, and a
-#: file whose few differing values exceed GOLDEN_MAX is kept with an ExportWarning; the golden tests,
-#: on scenes without such ties, hold both.
+#: Two Gaussians whose depths are equal to float32 rounding may also be taken in either order, which
+#: the spec allows too; that changes a pixel by alpha1 alpha2 (c1 - c2), which no constant bounds. So
+#: the export check (`export`) fails only on the fraction, and a file whose few differing values exceed
+#: GOLDEN_MAX is kept with an ExportWarning; the golden tests, on scenes without such ties, hold both.
 GOLDEN_TOLERANCE = 1e-3
 GOLDEN_FRACTION = 1e-3
 GOLDEN_MAX = 2e-2
