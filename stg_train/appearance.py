@@ -23,7 +23,7 @@ from torch import Tensor
 
 from stg_runtime.camera import Camera
 
-from .lens import lens_brightness
+from .lens import corner_r2, lens_brightness
 
 #: Adam learning rates of the per-camera appearance (per step; decayed with the run, see Trainer).
 APPEARANCE_LR = {"matrix": 1e-2, "bias": 3e-3, "vignetting": 5e-3}
@@ -35,8 +35,7 @@ def radial(camera: Camera, device, dtype=torch.float32) -> Tensor:
     u = torch.arange(camera.width, device=device, dtype=dtype) + 0.5 - camera.cx
     v = torch.arange(camera.height, device=device, dtype=dtype) + 0.5 - camera.cy
     r2 = u[None, :] ** 2 + v[:, None] ** 2
-    corner = max((x - camera.cx) ** 2 + (y - camera.cy) ** 2 for x in (0, camera.width) for y in (0, camera.height))
-    return r2 / corner
+    return r2 / corner_r2(camera)
 
 
 class CameraAppearance:

@@ -25,6 +25,7 @@ import numpy as np
 from stg_runtime.camera import Camera
 
 from .gauge import corrections_between, gauge_part
+from .lens import corner_r2
 from .rotations import rotation_from_axis_angle
 
 
@@ -105,8 +106,7 @@ class CameraEffects:
         u = np.arange(camera.width) + 0.5 - camera.cx
         v = np.arange(camera.height) + 0.5 - camera.cy
         r2 = u[None, :] ** 2 + v[:, None] ** 2
-        corner = max((x - camera.cx) ** 2 + (y - camera.cy) ** 2 for x in (0, camera.width) for y in (0, camera.height))
-        return 1.0 - self.vignetting * r2 / corner
+        return 1.0 - self.vignetting * r2 / corner_r2(camera)
 
     def apply(self, image: np.ndarray, camera: Camera) -> np.ndarray:
         """The picture the camera records of `image` (H, W, 3) rgb in [0, 1]: float64, clipped to [0, 1].

@@ -14,6 +14,13 @@ def lens_brightness(s, k):
     return 1.0 + k[0] * s + k[1] * s * s
 
 
+def corner_r2(camera) -> float:
+    """The squared distance, in pixels, from the camera's principal point to its farthest image corner:
+    the value at which s = r^2 / corner_r2 reaches 1 (a stg_runtime Camera, or anything with cx, cy,
+    width and height)."""
+    return max((x - camera.cx) ** 2 + (y - camera.cy) ** 2 for x in (0, camera.width) for y in (0, camera.height))
+
+
 def known_falloff(k) -> tuple[float, float]:
     """(k1, k2) of a known falloff given as (k1,) or (k1, k2); ValueError unless both are finite and the
     brightness stays within (0, 2] over the image (s in [0, 1]; checked at 101 points)."""

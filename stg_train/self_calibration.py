@@ -28,7 +28,7 @@ from typing import Callable, NamedTuple
 import cv2
 import numpy as np
 
-from .lens import known_falloff, lens_brightness
+from .lens import corner_r2, known_falloff, lens_brightness
 
 #: Flow pairs kept only where forward and backward flow agree to this many pixels (of the scaled image).
 FB_TOLERANCE = 0.3
@@ -70,6 +70,8 @@ def estimate_lens_falloff(dataset, frames=None, neighbours: int = 4, rounds: int
     frames = tuple(sorted({0, dataset.num_frames // 2})) if frames is None else tuple(int(f) for f in frames)
     scale = min(1.0, max_side / max(dataset.width, dataset.height))
     pictures = {(c, f): _scaled(dataset.image(c, f), scale) for c in cams for f in frames}
+    # the colours compared, blurred once: a sub-pixel misalignment of the flow then matters less
+    blurred = {key: cv2.GaussianBlur(p, (0, 0), 1.0) for key, p in pictures.items()}
     radial = {c: _radial(dataset.cameras[c], pictures[c, frames[0]].shape[:2]) for c in cams}
     pairs = _neighbour_pairs(dataset, cams, neighbours)
     rng = np.random.default_rng(seed)
@@ -81,7 +83,7 @@ def estimate_lens_falloff(dataset, frames=None, neighbours: int = 4, rounds: int
             corrected = {c: (pictures[c, f] / _brightness(radial[c], logv, gains[i])[..., None]).astype(np.float32)
                          for i, c in enumerate(cams)}
             for i, j in pairs:
-                rows.append(_pixel_pairs(pictures[cams[i], f], pictures[cams[j], f], corrected[cams[i]],
+                rows.append(_pixel_pairs(blurred[cams[i], f], blurred[cams[j], f], corrected[cams[i]],
                                          corrected[cams[j]], radial[cams[i]], radial[cams[j]], i, j))
                 done += 1
                 if progress is not None:
@@ -114,8 +116,7 @@ def _radial(camera, shape) -> np.ndarray:
     h, w = shape
     u = (np.arange(w) + 0.5) * (camera.width / w) - camera.cx
     v = (np.arange(h) + 0.5) * (camera.height / h) - camera.cy
-    corner = max((x - camera.cx) ** 2 + (y - camera.cy) ** 2 for x in (0, camera.width) for y in (0, camera.height))
-    return ((u[None, :] ** 2 + v[:, None] ** 2) / corner).astype(np.float32)
+    return ((u[None, :] ** 2 + v[:, None] ** 2) / corner_r2(camera)).astype(np.float32)
 
 
 def _neighbour_pairs(dataset, cams: list, neighbours: int) -> list[tuple[int, int]]:
@@ -140,8 +141,8 @@ def _grey(picture: np.ndarray) -> np.ndarray:
 
 
 def _pixel_pairs(a, b, a_flow, b_flow, s_a, s_b, i, j):
-    """Pixels of picture a (h, w, 3) matched in picture b by the flow of the corrected pictures:
-    (camera i, camera j, s at a, s at b, log colour at a (n, 3), log colour at b (n, 3))."""
+    """Pixels of picture a (h, w, 3; blurred) matched in picture b by the flow of the corrected pictures
+    a_flow, b_flow: (camera i, camera j, s at a, s at b, log colour at a (n, 3), log colour at b (n, 3))."""
     dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
     ga, gb = _grey(a_flow), _grey(b_flow)
     fwd, bwd = dis.calc(ga, gb, None), dis.calc(gb, ga, None)
@@ -152,10 +153,8 @@ def _pixel_pairs(a, b, a_flow, b_flow, s_a, s_b, i, j):
     ok = (np.hypot(fwd[..., 0] + back[..., 0], fwd[..., 1] + back[..., 1]) < FB_TOLERANCE)
     ok &= (u2 > 1) & (u2 < w - 2) & (v2 > 1) & (v2 < h - 2)
     ok &= np.abs(cv2.Laplacian(ga.astype(np.float32) / 255, cv2.CV_32F)) < SMOOTH
-    blur = lambda p: cv2.GaussianBlur(p, (0, 0), 1.0)  # noqa: E731  (a sub-pixel misalignment matters less)
-    ca = blur(a)[ok]
-    bb = blur(b)
-    cb = np.stack([cv2.remap(np.ascontiguousarray(bb[..., k]), u2, v2, cv2.INTER_LINEAR)[ok] for k in range(3)], 1)
+    ca = a[ok]
+    cb = np.stack([cv2.remap(np.ascontiguousarray(b[..., k]), u2, v2, cv2.INTER_LINEAR)[ok] for k in range(3)], 1)
     good = (ca.min(1) > DARK) & (cb.min(1) > DARK) & (ca.max(1) < CLIPPED) & (cb.max(1) < CLIPPED)
     n = int(good.sum())
     return (np.full(n, i), np.full(n, j), s_a[ok][good], cv2.remap(s_b, u2, v2, cv2.INTER_LINEAR)[ok][good],
