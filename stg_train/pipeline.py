@@ -73,19 +73,26 @@ def ensure_demo_scene(data, announce: bool = False, supersample: int = 1, seed: 
     return data
 
 
+@contextmanager
+def warnings_said():
+    """Warnings raised inside the block, printed as "stg-train: warning: ..." lines on stderr once it
+    ends (after any progress bar opened inside it has closed)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        yield
+    for w in caught:
+        print(f"stg-train: warning: {w.message}", file=sys.stderr)
+
+
 def new_trainer(dataset, config: TrainConfig, out: Path, quiet: bool = False) -> Trainer:
     """Trainer(dataset, config, out) with progress bars while SfM computes the initial points and while
     the optical flow gives them their motion; its
     warnings (SfM found too few points) are printed as "stg-train: warning: ..." lines, and the initial
     points' split, coverage and depth bounds as "stg-train: ..." lines (unless quiet)."""
-    with progress_stages(enabled=not quiet) as stage:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            trainer = Trainer(dataset, config, out_dir=out, init_progress=stage("structure from motion"),
-                              motion_progress=stage("initial motion (optical flow)"),
-                              calibration_progress=stage("lens falloff (the cameras' overlap)"))
-    for w in caught:
-        print(f"stg-train: warning: {w.message}", file=sys.stderr)
+    with warnings_said(), progress_stages(enabled=not quiet) as stage:
+        trainer = Trainer(dataset, config, out_dir=out, init_progress=stage("structure from motion"),
+                          motion_progress=stage("initial motion (optical flow)"),
+                          calibration_progress=stage("lens falloff (the cameras' overlap)"))
     if not quiet:
         if trainer.falloff_estimate is not None:
             e = trainer.falloff_estimate
@@ -302,11 +309,8 @@ def train(dataset, out, config: TrainConfig, resume: bool = False, quiet: bool =
     lpips = _lpips(quiet) if lpips is None else lpips  # (said after the run's own settings and notices)
     if trainer.step < trainer.steps:
         _run_training(trainer, ckpt, quiet, callback, stop_on_signal)
-    with warnings.catch_warnings(record=True) as caught:  # export's ExportWarning: said, the run goes on
-        warnings.simplefilter("always")
+    with warnings_said():  # export's ExportWarning: said, the run goes on
         report = export_trainer(trainer, out / "model.stg", check=check)
-    for w in caught:
-        print(f"stg-train: warning: {w.message}", file=sys.stderr)
     result = evaluate_player(Player(report.path, device="cpu"), dataset.shown(), lpips=lpips)
     metrics = {"heldout": heldout(result), "iterations": trainer.step, "train_seconds": trainer.seconds,
                "gaussians": trainer.params.count, "file_bytes": report.bytes,
