@@ -13,8 +13,10 @@ refined.
                               [--height H] [--set KEY=VALUE ...] [--capture KEY=VALUE ...] [--threads 2]
                               [--data DIR] [--json PATH]
 
-Variants: plain (neither), appearance, pose (pose_refine), both, colour (appearance without its
-vignetting term), known (both, with the capture's true vignetting given as TrainConfig.lens_falloff, as
+Variants: default (TrainConfig's defaults: the falloff and the appearance "auto", decided from the
+rig's measurement, stg_train.self_calibration.calibrate_rig), default-pose (the same with pose
+refinement), plain (neither a falloff nor an appearance: the defaults before 2026-12-04), appearance,
+pose (pose_refine), both, colour (appearance without its vignetting term), known (both, with the capture's true vignetting given as TrainConfig.lens_falloff, as
 a flat-field calibration would give it), known-appearance (the same without pose refinement), measured
 and measured-appearance (the same two with the vignetting measured from the cameras' overlap before
 training, TrainConfig.lens_falloff "auto": stg_train.self_calibration), lens-auto (that measurement
@@ -47,14 +49,19 @@ from stg_train.pipeline import DEMO_SCENE
 from stg_train.synthetic import NOVEL_VIEWS, SyntheticScene, novel_view_dataset, write_n3v
 from stg_train.trainer import Trainer, TrainConfig
 
-VARIANTS = {"plain": {}, "appearance": {"appearance": True}, "pose": {"pose_refine": True},
-            "both": {"appearance": True, "pose_refine": True},
-            "colour": {"appearance": True, "appearance_vignetting": False},
+#: Every variant but "default" starts from neither a falloff nor an appearance (the defaults before
+#: "auto", 2026-12-04).
+_OFF = {"appearance": False, "lens_falloff": None}
+VARIANTS = {"default": {}, "plain": _OFF, "appearance": {**_OFF, "appearance": True},
+            "pose": {**_OFF, "pose_refine": True},
+            "both": {**_OFF, "appearance": True, "pose_refine": True},
+            "colour": {**_OFF, "appearance": True, "appearance_vignetting": False},
             "known": {"appearance": True, "pose_refine": True, "lens_falloff": "capture"},
             "known-appearance": {"appearance": True, "lens_falloff": "capture"},
             "measured": {"appearance": True, "pose_refine": True, "lens_falloff": "auto"},
-            "lens-auto": {"lens_falloff": "auto"},
-            "measured-appearance": {"appearance": True, "lens_falloff": "auto"}}
+            "lens-auto": {**_OFF, "lens_falloff": "auto"},
+            "measured-appearance": {"appearance": True, "lens_falloff": "auto"},
+            "default-pose": {"pose_refine": True}}
 
 
 def parse_setting(text: str) -> tuple[str, object]:
@@ -112,7 +119,7 @@ def main() -> None:
     ap.add_argument("--iterations", type=int, default=d.iterations)
     ap.add_argument("--points", type=int, default=d.num_points)
     ap.add_argument("--seeds", default="0", help="comma-separated capture and training seeds (default 0)")
-    ap.add_argument("--variants", default="plain,both", help="comma-separated subset of: " + ", ".join(VARIANTS))
+    ap.add_argument("--variants", default="plain,default", help="comma-separated subset of: " + ", ".join(VARIANTS))
     ap.add_argument("--captures", default="clean,realistic", help="comma-separated subset of: clean, realistic")
     ap.add_argument("--cameras", type=int, default=DEMO_SCENE["cameras"])
     ap.add_argument("--frames", type=int, default=DEMO_SCENE["frames"])
@@ -156,8 +163,9 @@ def main() -> None:
                 trainer.train(progress=False)
                 row = {"seed": seed, "capture": capture_name, "variant": variant, "seconds": time.perf_counter() - start,
                        "gaussians": trainer.params.count, "views": score(trainer, views)}
-                if trainer.falloff_estimate is not None:
-                    row["measured_falloff"] = list(trainer.falloff_estimate.k)
+                if trainer.calibration is not None and trainer.calibration.estimate is not None:
+                    row["measured_falloff"] = list(trainer.calibration.estimate.k)
+                    row["chosen"] = {"lens_falloff": trainer.config.lens_falloff, "appearance": trainer.config.appearance}
                 if trainer.appearance is not None:
                     summary = trainer.appearance.summary()
                     row["vignetting"] = np.mean([a["vignetting"] for a in summary], axis=0).tolist()
@@ -180,6 +188,10 @@ def main() -> None:
                     f"{row['pose_refined'][2]:.3f} deg {row['pose_refined'][3]:.4f})")
                 extra = "".join(f"  {k} {np.round(row[k], 4).tolist()}" for k in ("vignetting", "measured_falloff", "correction")
                                 if k in row)
+                if "chosen" in row:
+                    k = row["chosen"]["lens_falloff"]
+                    extra += (f"  chosen: falloff {None if k is None else np.round(k, 3).tolist()}, "
+                              f"appearance {row['chosen']['appearance']}")
                 print(f"seed {seed} {capture_name:9s} {variant:10s} {figures}{pose}{extra}  ({row['gaussians']} Gaussians, "
                       f"{row['seconds']:.0f} s)", flush=True)
     print("\nraw / colour-aligned PSNR against the clean lossless frames (held-out camera at its true pose)")

@@ -44,12 +44,15 @@ class TrainConfig:
     separate_rotation: the reference's step that keeps the rotation velocity only for moving Gaussians
     (stg_train.strategy.rotation, at Schedule.separate_at); appearance: a learned colour transform per
     training camera (and, with appearance_vignetting, a radial falloff) applied to its renders before
-    the loss only (stg_train.appearance); pose_refine: a learned rigid correction of each training
+    the loss only (stg_train.appearance): True, False, or "auto" (the default: on when the training
+    cameras' colour gains, measured before training from what they see of the same surfaces, disagree;
+    stg_train.self_calibration.calibrate_rig); pose_refine: a learned rigid correction of each training
     camera's pose (stg_train.pose_refine); lens_falloff: the training cameras' known vignetting
     (k1, k2), e.g. from a flat-field calibration, applied to their renders before the loss as
     1 + k1 s + k2 s^2 (stg_train.lens; ValueError outside its range), when the appearance then learns none;
-    "auto" measures it before training from what the training cameras see of the same surfaces
-    (stg_train.self_calibration; the checkpoint keeps the numbers);
+    None: none; "auto" (the default) measures it before training from what the training cameras see of
+    the same surfaces, and trains without one where it cannot be measured or is too small to matter
+    (stg_train.self_calibration; the checkpoint keeps the choices made);
     camera_learning_rates: overrides of their rates (keys "matrix", "bias", "vignetting" of
     appearance.APPEARANCE_LR, "rotation", "translation" of pose_refine.POSE_LR); segment_context: for a video trained in segments, how many neighbouring
     frames on each side a segment is also fitted to (as context: it shows only its own frames, and the
@@ -82,10 +85,10 @@ class TrainConfig:
     guided_settings: dict = field(default_factory=dict)
     learning_rates: dict = field(default_factory=dict)
     separate_rotation: bool = False
-    appearance: bool = False
+    appearance: bool | str = "auto"
     appearance_vignetting: bool = True
     pose_refine: bool = False
-    lens_falloff: tuple | str | None = None
+    lens_falloff: tuple | str | None = "auto"
     camera_learning_rates: dict = field(default_factory=dict)
     segment_context: int = 4
     edge_weight: float = 3.0
@@ -104,5 +107,11 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":
+        """The settings as saved (asdict); a setting the dict lacks takes its default, except those whose
+        default became "auto" later (SAVED_BEFORE_AUTO): a run saved before knew them as off."""
         names = {f.name for f in fields(cls)}
-        return cls(**{k: v for k, v in d.items() if k in names})
+        return cls(**{**SAVED_BEFORE_AUTO, **{k: v for k, v in d.items() if k in names}})
+
+
+#: The settings whose default became "auto" (2026-12-04), with the value a checkpoint without them ran with.
+SAVED_BEFORE_AUTO = {"appearance": False, "lens_falloff": None}

@@ -43,6 +43,7 @@ from .convert.merge import merge_files
 from .data import DataError, load_dataset
 from .export import export_trainer
 from .metrics import evaluate_player, heldout, lpips_models
+from .self_calibration import calibrate_rig, needs_calibration
 from .segments import (PLAN_NAME, SegmentError, cache_chunks, check_plan, finished, missing_message, plan_segments, pooled,
                        segment_dir, segment_view, worst_check)
 from .synthetic import SyntheticScene, write_n3v
@@ -84,24 +85,43 @@ def warnings_said():
         print(f"stg-train: warning: {w.message}", file=sys.stderr)
 
 
+#: The progress bar's title while the rig is measured (stg_train.self_calibration).
+CALIBRATION_STAGE = "lens falloff and camera colours (the cameras' overlap)"
+
+
 def new_trainer(dataset, config: TrainConfig, out: Path, quiet: bool = False) -> Trainer:
-    """Trainer(dataset, config, out) with progress bars while SfM computes the initial points and while
-    the optical flow gives them their motion; its
-    warnings (SfM found too few points) are printed as "stg-train: warning: ..." lines, and the initial
-    points' split, coverage and depth bounds as "stg-train: ..." lines (unless quiet)."""
+    """Trainer(dataset, config, out) with progress bars while the rig is measured (a lens falloff or
+    appearance "auto"), while SfM computes the initial points and while the optical flow gives them their
+    motion; its warnings (SfM found too few points) are printed as "stg-train: warning: ..." lines, and
+    what the rig's measurement decided and the initial points' split, coverage and depth bounds as
+    "stg-train: ..." lines (unless quiet)."""
     with warnings_said(), progress_stages(enabled=not quiet) as stage:
         trainer = Trainer(dataset, config, out_dir=out, init_progress=stage("structure from motion"),
                           motion_progress=stage("initial motion (optical flow)"),
-                          calibration_progress=stage("lens falloff (the cameras' overlap)"))
+                          calibration_progress=stage(CALIBRATION_STAGE))
     if not quiet:
-        if trainer.falloff_estimate is not None:
-            e = trainer.falloff_estimate
-            print(f"stg-train: lens falloff measured from the cameras' overlap: K1 {e.k[0]:.3f}, K2 {e.k[1]:.3f} "
-                  f"(corner brightness {e.corner_brightness:.3f}; {e.pairs} pixel pairs at frames "
-                  f"{', '.join(map(str, e.frames))})", file=sys.stderr)
+        for line in (() if trainer.calibration is None else trainer.calibration.notes):
+            print(f"stg-train: {line}", file=sys.stderr)
         for line in trainer.initial.describe().splitlines():
             print(f"stg-train: {line}", file=sys.stderr)
     return trainer
+
+
+def calibrated_once(dataset, config: TrainConfig, given: dict[str, str] | None = None,
+                    quiet: bool = False) -> tuple[TrainConfig, dict[str, str]]:
+    """For a video trained in segments: (config, given) with a lens falloff or appearance "auto" decided
+    once from the whole video's frames (stg_train.self_calibration.calibrate_rig; said on stderr unless
+    quiet), so that every segment trains with the same choices; `given` loses the options so decided (a
+    resumed segment keeps its checkpoint's choices). Unchanged when nothing is "auto"."""
+    if not needs_calibration(config):
+        return config, dict(given or {})
+    with progress_stages(enabled=not quiet) as stage:
+        decided, calibration = calibrate_rig(dataset, config, progress=stage(CALIBRATION_STAGE))
+    if not quiet:
+        for line in calibration.notes:
+            print(f"stg-train: {line}", file=sys.stderr)
+    auto = {name for name in ("lens_falloff", "appearance") if getattr(config, name) == "auto"}
+    return decided, {k: v for k, v in (given or {}).items() if k not in auto}
 
 
 def _lpips(quiet: bool) -> dict:
@@ -255,7 +275,7 @@ def _resume(dataset, ckpt: Path, out: Path, config: TrainConfig, given: dict[str
         new, old = getattr(config, name), getattr(saved, name)
         if name in ("device", "splatter") or new == old:
             continue
-        if name == "lens_falloff" and new == "auto":  # the checkpoint holds the falloff its run measured
+        if name in ("lens_falloff", "appearance") and new == "auto":  # the checkpoint holds what its run measured
             continue
         if name not in RESUMABLE:
             raise ResumeConflict(f"{option}: {ckpt} was trained with {name} = {old!r}, which a resumed run keeps: "
@@ -373,6 +393,8 @@ def train_segments(dataset, out, config: TrainConfig, segment_frames: int, indic
     out = Path(out)
     dataset, plan, todo = prepare_segments(dataset, out, segment_frames, indices, resume, quiet,
                                                    config.segment_context)
+    if todo:
+        config, given = calibrated_once(dataset, config, given, quiet)
     lpips = _lpips(quiet)
     for i in todo:
         span, folder = plan[i], segment_dir(out, i, len(plan))

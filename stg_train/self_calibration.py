@@ -20,9 +20,17 @@ distances from their principal points, though, and that difference is what this 
 
 The log-polynomial is then written as the trainer's `1 + k1 s + k2 s^2` (a least-squares fit over
 s in [0, 1]). Pinhole and fisheye cameras alike (s is measured in pixels from the principal point).
+The same pixel pairs also fit each camera's own falloff (`FalloffEstimate.camera_corners`), which tells
+whether the lenses share one.
+
+`calibrate_rig` turns the measurement into what training uses, with a quiet fallback: the falloff
+(none where the cameras do not overlap, the lenses differ, the estimate is out of range or too small to
+matter) and whether the cameras' colours disagree enough to learn a per-camera appearance
+(`TrainConfig(lens_falloff="auto", appearance="auto")`, the defaults).
 """
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Callable, NamedTuple
 
 import cv2
@@ -40,30 +48,64 @@ DARK, CLIPPED = 0.05, 0.98
 MAX_PAIRS = 200_000
 #: Fewer pixel pairs than this: the cameras do not overlap enough to measure anything.
 MIN_PAIRS = 2_000
+#: At most this many pixel pairs enter the fit of each camera's own falloff (a random subset beyond).
+MAX_CAMERA_PAIRS = 50_000
+
+# What calibrate_rig decides from a measurement (docs/training.md, "Real captures", has the figures):
+#: a falloff whose corner brightness is within this of 1 is taken as none (a clean capture measures
+#: 1.014-1.021: the measurement's own bias);
+NEGLIGIBLE = 0.03
+#: the lenses share one falloff when every camera's own corner brightness is within this of the rig's
+#: (0.022 at most on the synthetic captures, where they do; 0.27 where half the lenses vignette 30 %);
+LENS_SPREAD = 0.05
+#: the falloff is trusted when its corner brightness's two standard errors are below this (0.001-0.002 on
+#: the synthetic captures; large only where the rig's geometry leaves the falloff undetermined);
+UNCERTAIN = 0.05
+#: the cameras' colours disagree, and a per-camera appearance is learned, when the RMS of their log
+#: colour gains exceeds this (0.004 on a clean capture, 0.09-0.16 with the default `stg-synth --realistic`).
+GAIN_SPREAD = 0.03
 
 
 class FalloffEstimate(NamedTuple):
-    """k: (k1, k2) of the brightness 1 + k1 s + k2 s^2; gains: (C, 3) each training camera's colour
-    gains relative to the rig's (their geometric mean over the cameras is 1; rows in
-    dataset.train_cameras order); pairs: pixel pairs found in the last round; frames: the frames used."""
+    """k: (k1, k2) of the brightness 1 + k1 s + k2 s^2 shared by the rig's lenses; gains: (C, 3) each
+    training camera's colour gains relative to the rig's (their geometric mean over the cameras is 1;
+    rows in dataset.train_cameras order); pairs: pixel pairs found in the last round; frames: the
+    frames used; camera_corners: (C,) each camera's own corner brightness, fitted with a falloff of its
+    own; corner_error: two standard errors of the shared corner brightness (from the fit's residuals)."""
 
     k: tuple[float, float]
     gains: np.ndarray
     pairs: int
     frames: tuple[int, ...]
+    camera_corners: np.ndarray
+    corner_error: float
 
     @property
     def corner_brightness(self) -> float:
         """The brightness at the farthest image corner (s = 1), 1 + k1 + k2."""
         return float(lens_brightness(1.0, self.k))
 
+    @property
+    def lens_spread(self) -> float:
+        """How far the camera furthest from the rig's corner brightness is from it (0 for one lens)."""
+        return float(np.abs(self.camera_corners - self.corner_brightness).max())
+
+    @property
+    def gain_spread(self) -> float:
+        """The RMS of the cameras' log colour gains (over cameras and channels): 0 when they agree."""
+        return float(np.sqrt(np.mean(np.log(self.gains) ** 2)))
+
+    def describe(self) -> str:
+        return (f"K1 {self.k[0]:.3f}, K2 {self.k[1]:.3f} (corner brightness {self.corner_brightness:.3f}; "
+                f"{self.pairs} pixel pairs at frames {', '.join(map(str, self.frames))})")
+
 
 def estimate_lens_falloff(dataset, frames=None, neighbours: int = 4, rounds: int = 3, max_side: int = 320,
                           seed: int = 0, progress: Callable[[int, int], None] | None = None) -> FalloffEstimate:
     """The falloff shared by the training cameras of `dataset` (stg_train.data.Dataset), from `frames`
     (default: the first and the middle frame). progress(done, total) is called per camera pair and round.
-    Raises ValueError when the cameras overlap too little (fewer than MIN_PAIRS pixel pairs) or the
-    estimate leaves the range a known falloff must keep (stg_train.lens.known_falloff)."""
+    Raises ValueError when the cameras overlap too little (fewer than MIN_PAIRS pixel pairs). The
+    estimate may lie outside the range a known falloff must keep (calibrate_rig checks it)."""
     cams = list(dataset.train_cameras)
     if len(cams) < 2:
         raise ValueError(f"the lens falloff needs two or more training cameras, the dataset has {len(cams)}")
@@ -96,10 +138,81 @@ def estimate_lens_falloff(dataset, frames=None, neighbours: int = 4, rounds: int
         if total > MAX_PAIRS:
             keep = rng.choice(total, MAX_PAIRS, replace=False)
             data = [d[keep] for d in data]
-        gains, logv = _fit(*data, num_cameras=len(cams))
-    k = _as_polynomial(logv)
-    known_falloff(k)  # the trainer's range; ValueError outside it
-    return FalloffEstimate(k, np.exp(gains), total, frames)
+        gains, logv, error = _fit(*data, num_cameras=len(cams))
+    subset = rng.permutation(len(data[0]))[:MAX_CAMERA_PAIRS]
+    corners = _camera_corners(*[d[subset] for d in data], num_cameras=len(cams))
+    return FalloffEstimate(_as_polynomial(logv), np.exp(gains), total, frames, corners,
+                           float(2 * error * np.exp(logv.sum())))
+
+
+class RigCalibration(NamedTuple):
+    """What training takes from the measurement (calibrate_rig). lens_falloff: (k1, k2), or None for
+    none; appearance: learn a per-camera appearance; estimate: the FalloffEstimate (None when it could
+    not be measured); notes: what was decided and why, one line each (for stg-train to print)."""
+
+    lens_falloff: tuple[float, float] | None
+    appearance: bool
+    estimate: FalloffEstimate | None
+    notes: tuple[str, ...]
+
+
+def needs_calibration(config) -> bool:
+    """Whether a TrainConfig leaves the lens falloff or the appearance "auto"."""
+    return "auto" in (config.lens_falloff, config.appearance)
+
+
+def calibrate_rig(dataset, config, progress: Callable[[int, int], None] | None = None):
+    """(config with lens_falloff and appearance "auto" decided, RigCalibration) for a TrainConfig whose
+    lens_falloff or appearance is "auto" (needs_calibration), from estimate_lens_falloff's measurement of
+    `dataset`. The falloff is trained with unless it cannot be measured or trusted (_decide_falloff);
+    the appearance is learned when the cameras' colour gains disagree (GAIN_SPREAD) or their lenses do
+    (LENS_SPREAD: each camera's appearance then learns its own falloff). Never raises for the rig: the
+    notes say what was decided and why. progress: as estimate_lens_falloff's."""
+    try:
+        estimate = estimate_lens_falloff(dataset, progress=progress)
+    except ValueError as e:
+        estimate, why = None, str(e)
+    falloff, appearance, notes = config.lens_falloff, config.appearance, []
+    if falloff == "auto":
+        if estimate is None:
+            falloff, note = None, f"lens falloff: not measured ({why}); training without one"
+        else:
+            falloff, note = _decide_falloff(estimate)
+        notes.append(note)
+    if appearance == "auto":
+        if estimate is None:
+            appearance = False
+            notes.append(f"camera colours: not measured ({why}); no per-camera appearance (--appearance learns one)")
+        else:
+            lenses = estimate.lens_spread > LENS_SPREAD  # then each camera's appearance learns its own falloff
+            appearance = estimate.gain_spread > GAIN_SPREAD or lenses
+            choice = ("learning a per-camera appearance (--no-appearance: none)" if appearance else
+                      "no per-camera appearance (--appearance learns one)")
+            notes.append(f"camera colours: the training cameras' colour gains differ by "
+                         f"{100 * estimate.gain_spread:.1f} % (RMS){' and their lenses differ' if lenses else ''}: "
+                         f"{choice}")
+    return (replace(config, lens_falloff=falloff, appearance=appearance),
+            RigCalibration(falloff, appearance, estimate, tuple(notes)))
+
+
+def _decide_falloff(estimate: FalloffEstimate) -> tuple[tuple[float, float] | None, str]:
+    """(the falloff to train with or None, the note saying which and why)."""
+    said = f"lens falloff measured from the cameras' overlap: {estimate.describe()}"
+    corners = estimate.camera_corners
+    if estimate.lens_spread > LENS_SPREAD:
+        return None, (f"{said}; but the cameras' own corner brightness ranges over {corners.min():.3f}-"
+                      f"{corners.max():.3f}, not one lens: training without a shared falloff (a per-camera "
+                      "appearance learns each camera's own; --lens-falloff K1,K2 gives a known one)")
+    if estimate.corner_error > UNCERTAIN:
+        return None, (f"{said}; but it is uncertain (+-{estimate.corner_error:.3f}: the cameras see the "
+                      "scene at too alike distances from their centres): training without one")
+    try:
+        k = known_falloff(estimate.k)
+    except ValueError as e:
+        return None, f"{said}; but {e}: training without one"
+    if abs(estimate.corner_brightness - 1.0) <= NEGLIGIBLE:
+        return None, f"{said}: within {NEGLIGIBLE} of none, training without one"
+    return k, f"{said}: training with it"
 
 
 def _scaled(image: np.ndarray, scale: float) -> np.ndarray:
@@ -164,7 +277,9 @@ def _pixel_pairs(a, b, a_flow, b_flow, s_a, s_b, i, j):
 def _fit(ci, cj, si, sj, li, lj, num_cameras: int, iterations: int = 8, scale: float = 0.05):
     """IRLS (Cauchy weights, `scale` in log units) of li - lj = g_i - g_j + a1 (si - sj) + a2 (si^2 - sj^2)
     per channel, (a1, a2) shared by the channels and each channel's gains summing to 0: returns
-    (g (C, 3), (a1, a2)). The normal equations are summed per camera pair (np.bincount), O(pairs)."""
+    (g (C, 3), (a1, a2), the standard error of a1 + a2, the log corner brightness, as if the pairs' errors
+    were independent: neighbouring pixels' are not, so it is small unless the geometry leaves the falloff
+    undetermined). The normal equations are summed per camera pair (np.bincount), O(pairs)."""
     c = num_cameras
     d = np.stack([si - sj, si * si - sj * sj], 1)  # (n, 2)
     t = li - lj  # (n, 3)
@@ -186,7 +301,33 @@ def _fit(ci, cj, si, sj, li, lj, num_cameras: int, iterations: int = 8, scale: f
         gains = x[:3 * c].reshape(3, c).T
         r = t - (gains[ci] - gains[cj] + (d @ x[3 * c:])[:, None])
         w = 1.0 / (1.0 + (r / scale) ** 2)
-    return x[:3 * c].reshape(3, c).T, x[3 * c:]
+    variance = float((w * r * r).sum() / w.sum())  # of a residual, the weights as in the last solve
+    corner = np.zeros(3 * c + 2)
+    corner[3 * c:] = 1.0
+    error = np.sqrt(variance * corner @ np.linalg.solve(normal, corner))
+    return x[:3 * c].reshape(3, c).T, x[3 * c:], float(error)
+
+
+def _camera_corners(ci, cj, si, sj, li, lj, num_cameras: int, iterations: int = 8, scale: float = 0.05):
+    """(C,) each camera's corner brightness exp(a1_c + a2), fitted as _fit does but with a falloff a1_c s
+    of its own per camera (a2 shared) on the pairs' mean log colour over the channels: dense weighted
+    least squares over (C gains, C slopes, a2), the gains' sum held at 0 by one heavy row."""
+    c, n = num_cameras, len(ci)
+    t = (li - lj).mean(1)
+    design = np.zeros((n, 2 * c + 1))
+    rows = np.arange(n)
+    np.add.at(design, (rows, ci), 1.0)
+    np.add.at(design, (rows, cj), -1.0)
+    np.add.at(design, (rows, c + ci), si)
+    np.add.at(design, (rows, c + cj), -sj)
+    design[:, 2 * c] = si * si - sj * sj
+    gauge = np.r_[np.full(c, 100.0), np.zeros(c + 1)]
+    w = np.ones(n)
+    for _ in range(iterations):
+        root = np.sqrt(w)
+        x, *_ = np.linalg.lstsq(np.vstack([design * root[:, None], gauge]), np.r_[t * root, 0.0], rcond=None)
+        w = 1.0 / (1.0 + ((t - design @ x) / scale) ** 2)
+    return np.exp(x[c:2 * c] + x[2 * c])
 
 
 def _as_polynomial(logv: np.ndarray) -> tuple[float, float]:

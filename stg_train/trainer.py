@@ -36,7 +36,7 @@ from .losses import loss_fn
 from .metrics import psnr_of_mse
 from .params import LearningRates, STGParams, extent_of, position_lr, view_inputs
 from .pose_refine import PoseCorrections
-from .self_calibration import estimate_lens_falloff
+from .self_calibration import calibrate_rig, needs_calibration
 from .render import rasterize
 from .strategy import (DensityControl, GuidedSampling, GuidedSettings, Schedule, SeparateRotation, StepContext,
                        Strategy, Thresholds)
@@ -95,8 +95,9 @@ class Trainer:
     config, out_dir) or continue one with Trainer.resume(dataset, checkpoint_path). init_progress(done, total):
     called per frame while SfM computes the initial points (not when cached); motion_progress(done,
     total): per frame while the optical flow gives them their initial motion (motion_init "flow");
-    calibration_progress(done, total): per camera pair while lens_falloff "auto" is measured
-    (stg_train.self_calibration; its FalloffEstimate is then falloff_estimate, else None). initial: the
+    calibration_progress(done, total): per camera pair while the rig is measured for a lens_falloff or
+    appearance "auto" (stg_train.self_calibration; its RigCalibration is then `calibration`, else None:
+    the choices made are in self.config). initial: the
     stg_train.data.points.InitialPoints of a fresh run (None when resumed). A dataset without near/far
     bounds gets those the initialisation derived (self.dataset is then a view of it with them; a resumed
     run takes them from the checkpoint), so guided sampling clips to them as on N3V.
@@ -109,10 +110,10 @@ class Trainer:
         if config.motion_init not in MOTION_INITS:
             raise ValueError(f"motion_init must be one of {MOTION_INITS}, got {config.motion_init!r}")
         config = config.for_dataset(dataset)
-        self.falloff_estimate = None
-        if config.lens_falloff == "auto":  # measured from the cameras' overlap; a resumed run keeps its numbers
-            self.falloff_estimate = estimate_lens_falloff(dataset, progress=calibration_progress)
-            config = replace(config, lens_falloff=self.falloff_estimate.k)
+        self.calibration = None
+        # lens falloff and appearance "auto": measured from the cameras' overlap (a resumed run keeps its choices)
+        if needs_calibration(config) and _state is None:
+            config, self.calibration = calibrate_rig(dataset, config, progress=calibration_progress)
         # (k1, k2) of a known vignetting, checked (a ValueError) before anything is computed
         self.lens_falloff = None if config.lens_falloff is None else known_falloff(config.lens_falloff)
         self.dataset, self.config = dataset, config

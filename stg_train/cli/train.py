@@ -73,15 +73,17 @@ def _edge_weight(text: str) -> float:
     return value
 
 
-def _lens_falloff(text: str) -> tuple[float, float] | str:
+def _lens_falloff(text: str) -> tuple[float, float] | str | None:
     """K1[,K2] -> (k1, k2), checked by lens.known_falloff (the brightness within (0, 2] over the image);
-    "auto" stays "auto" (measured before training)."""
+    "auto" stays "auto" (measured before training); "none" -> None."""
     if text == "auto":
         return text
+    if text == "none":
+        return None
     try:
         values = [float(v) for v in text.split(",")]
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected K1 or K1,K2 (numbers), got {text!r}") from None
+        raise argparse.ArgumentTypeError(f"expected K1 or K1,K2 (numbers), auto or none, got {text!r}") from None
     try:
         return known_falloff(values)
     except ValueError as e:
@@ -196,21 +198,24 @@ def build_parser() -> argparse.ArgumentParser:
                    help="learn each training camera's colour transform (3x3 + bias, their mean held at the "
                         "identity) and lens vignetting, applied to its renders before the loss only: for "
                         "captures whose cameras disagree in exposure and colour; the .stg holds the canonical "
-                        "scene (off by default; docs/training.md)")
+                        "scene. Default: on when the training cameras' colour gains, measured before training "
+                        "from what neighbouring cameras see of the same surfaces, differ by more than 3 %% "
+                        "(RMS), which stg-train prints; --no-appearance: never (docs/training.md)")
     p.add_argument("--pose-refine", action=argparse.BooleanOptionalAction, default=d.pose_refine,
                    help="refine each training camera's pose (a small rotation and translation) with the scene; "
                         "writes OUT/refined_cameras.json, and the .stg stores the refined cameras (off by "
                         "default; docs/training.md)")
-    p.add_argument("--lens-falloff", type=_lens_falloff, default=d.lens_falloff, metavar="K1[,K2]|auto",
+    p.add_argument("--lens-falloff", type=_lens_falloff, default=d.lens_falloff, metavar="K1[,K2]|auto|none",
                    help="the cameras' known vignetting, e.g. from a flat-field calibration or the lens profile: "
                         "brightness 1 + K1 s + K2 s^2, s the squared distance from the principal point over its "
                         "value at the farthest corner (-0.3: 30 %% darker at the corners), applied to every "
                         "training render before the loss, so the .stg holds the scene without it; with "
                         "--appearance, no vignetting is learned then; write --lens-falloff=-0.3,0.05 when "
-                        "K1 is negative and K2 given. 'auto' measures it before training from what neighbouring "
-                        "cameras see of the same surfaces at the same instant (for a rig whose lenses share "
-                        "one falloff; seconds for the demo's 12 cameras) and prints it; a resumed run keeps what "
-                        "its first run measured (default: none; docs/training.md)")
+                        "K1 is negative and K2 given. 'auto' (the default) measures it before training from "
+                        "what neighbouring cameras see of the same surfaces at the same instant (seconds for the "
+                        "demo's 12 cameras) and prints it; it trains without one where the cameras overlap too "
+                        "little, their lenses differ or the corners are within 3 %% of the centre; a resumed run "
+                        "keeps what its first run measured. 'none': no falloff (docs/training.md)")
     p.add_argument("--viewer", nargs="?", type=port, const=8080, default=None, metavar="PORT",
                    help="show the model in the browser while it trains, at http://127.0.0.1:PORT (default "
                         "8080; needs the viewer extra): the current parameters every few seconds, and the "

@@ -17,7 +17,7 @@ from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Callable, Sequence
 
-from ..pipeline import finish_segments, prepare_segments
+from ..pipeline import calibrated_once, finish_segments, prepare_segments
 from ..trainer import TrainConfig
 from . import DistributedError
 from .board import Board, Display
@@ -138,6 +138,7 @@ def train_on_devices(dataset, out, config: TrainConfig, segment_frames: int, dev
     dataset, plan, todo = prepare_segments(dataset, out, segment_frames, indices, resume, quiet,
                                                    config.segment_context)
     if todo:
+        config, _ = calibrated_once(dataset, config, quiet=quiet)
         jobs = make_jobs(dataset, out, plan, todo, config, resume, check, threads)
         board = Board({j.index: j.steps for j in jobs})
         reports = multiprocessing.get_context("spawn").Queue()

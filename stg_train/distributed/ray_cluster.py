@@ -17,7 +17,7 @@ from typing import Callable, Sequence
 from stg_runtime.player import RenderError
 
 from ..data import DataError
-from ..pipeline import finish_segments, prepare_segments
+from ..pipeline import calibrated_once, finish_segments, prepare_segments
 from ..segments import SegmentError
 from ..trainer import TrainConfig
 from . import DistributedError
@@ -136,6 +136,7 @@ def train_on_ray(dataset, out, config: TrainConfig, segment_frames: int, indices
         dataset, plan, todo = prepare_segments(dataset, out, segment_frames, indices, resume, quiet,
                                                config.segment_context)
         if todo:
+            config, _ = calibrated_once(dataset, config, quiet=quiet)
             jobs = make_jobs(dataset, out, plan, todo, config, resume, check, threads)
             resources = _resources(ray, config, threads)
             check_shared(ray, dataset, out)

@@ -1,13 +1,18 @@
 """The rig's lens falloff measured from its own pictures (stg_train.self_calibration), on synthetic
 captures whose falloff and colour gains are known (stg_train.capture)."""
+import json
+from dataclasses import asdict
+
 import numpy as np
 import pytest
+import torch
 
 from stg_train.capture import CaptureModel
 from stg_train.config import TrainConfig
 from stg_train.data import load_n3v
 from stg_train.data.dataset import Dataset
-from stg_train.self_calibration import estimate_lens_falloff
+from stg_train.lens import corner_r2
+from stg_train.self_calibration import GAIN_SPREAD, calibrate_rig, estimate_lens_falloff
 from stg_train.synthetic import SyntheticScene, write_n3v
 from stg_train.trainer import Trainer
 
@@ -36,9 +41,74 @@ def test_a_shared_falloff_and_the_cameras_gains_are_measured(realistic):
     assert estimate.pairs > 10_000 and estimate.frames == (0, 1)
 
 
-def test_a_clean_capture_measures_no_falloff(tmp_path):
-    dataset, _ = _capture(tmp_path, None)
-    assert abs(estimate_lens_falloff(dataset).corner_brightness - 1.0) < 0.04
+@pytest.fixture(scope="module")
+def clean(tmp_path_factory):
+    """The same scene captured cleanly, 2 frames."""
+    return _capture(tmp_path_factory.mktemp("clean"), None)[0]
+
+
+def test_a_clean_capture_measures_no_falloff(clean):
+    estimate = estimate_lens_falloff(clean)
+    assert abs(estimate.corner_brightness - 1.0) < 0.04
+    assert np.abs(estimate.camera_corners - 1.0).max() < 0.05  # each camera's own fit too
+    assert estimate.gain_spread < GAIN_SPREAD / 3
+
+
+def test_auto_decides_nothing_to_correct_on_a_clean_capture(clean):
+    config, calibration = calibrate_rig(clean, TrainConfig())
+    assert config.lens_falloff is None and config.appearance is False  # the run trains as before "auto"
+    assert calibration.lens_falloff is None and calibration.estimate is not None
+    assert "training without one" in calibration.notes[0] and "no per-camera appearance" in calibration.notes[1]
+
+
+def test_auto_trains_a_clean_capture_to_the_same_bits_as_neither(clean):
+    def trained(**settings):
+        trainer = Trainer(clean, TrainConfig(iterations=4, num_points=300, **settings))
+        trainer.train(progress=False)
+        state = trainer.params.state_dict()
+        return {**state["raw"], **{f"decoder.{k}": v for k, v in state["decoder"].items()}}
+
+    auto, neither = trained(), trained(lens_falloff=None, appearance=False)  # the measurement draws no random number
+    assert auto.keys() == neither.keys() and all(torch.equal(auto[k], neither[k]) for k in auto)
+
+
+def test_auto_decides_a_falloff_and_an_appearance_on_a_realistic_capture(realistic):
+    dataset, _ = realistic
+    config, calibration = calibrate_rig(dataset, TrainConfig(pose_refine=True))
+    assert config.lens_falloff == calibration.estimate.k and abs(calibration.estimate.corner_brightness - 0.7) < 0.04
+    assert config.appearance is True and calibration.estimate.gain_spread > 2 * GAIN_SPREAD
+    assert config.pose_refine  # the rest is untouched
+    given, _ = calibrate_rig(dataset, TrainConfig(lens_falloff=(-0.3, 0.0), appearance=False))
+    assert given.lens_falloff == (-0.3, 0.0) and given.appearance is False  # nothing auto: nothing decided
+
+
+def _vignetted(dataset, cameras, amount=0.3):
+    """The dataset with `cameras` (indices) vignetted by 1 - amount s."""
+    frames = np.stack([[dataset.image(c, f) for f in range(dataset.num_frames)] for c in range(len(dataset.cameras))])
+    for c in cameras:
+        cam = dataset.cameras[c]
+        u, v = np.arange(cam.width) + 0.5 - cam.cx, np.arange(cam.height) + 0.5 - cam.cy
+        frames[c] *= (1 - amount * (u[None] ** 2 + v[:, None] ** 2) / corner_r2(cam))[None, ..., None]
+    return Dataset(dataset.cameras, np.clip(frames * 255 + 0.5, 0, 255).astype(np.uint8), dataset.fps,
+                   test_cameras=dataset.test_cameras)
+
+
+def test_lenses_that_differ_are_told_apart_and_no_shared_falloff_is_trained(clean):
+    mixed = _vignetted(clean, [c for c in clean.train_cameras if c % 2])  # every other lens vignettes 30 %
+    estimate = estimate_lens_falloff(mixed)
+    corners = dict(zip(mixed.train_cameras, estimate.camera_corners))
+    assert all(abs(corners[c] - (0.7 if c % 2 else 1.0)) < 0.05 for c in corners), corners
+    config, calibration = calibrate_rig(mixed, TrainConfig())
+    assert config.lens_falloff is None and "not one lens" in calibration.notes[0]
+    assert config.appearance is True and "their lenses differ" in calibration.notes[1]  # each learns its own
+
+
+def test_a_rig_that_cannot_be_measured_trains_without_a_falloff_or_an_appearance():
+    cams = SyntheticScene().cameras(4, 64, 48)
+    dark = Dataset(cams, np.zeros((4, 1, 48, 64, 3), np.uint8), 30.0, test_cameras=[0])
+    config, calibration = calibrate_rig(dark, TrainConfig())
+    assert config.lens_falloff is None and config.appearance is False and calibration.estimate is None
+    assert "not measured (the training cameras overlap too little" in calibration.notes[0]
 
 
 def test_pictures_with_nothing_to_match_are_refused():
@@ -52,9 +122,10 @@ def test_pictures_with_nothing_to_match_are_refused():
 
 def test_the_trainer_measures_auto_and_trains_with_the_numbers(realistic):
     dataset, _ = realistic
-    trainer = Trainer(dataset, TrainConfig(lens_falloff="auto", appearance=True, iterations=1, num_points=500))
-    assert trainer.falloff_estimate is not None
-    assert trainer.config.lens_falloff == trainer.falloff_estimate.k == trainer.lens_falloff
+    trainer = Trainer(dataset, TrainConfig(iterations=1, num_points=500))  # the defaults: both "auto"
+    assert trainer.calibration is not None
+    assert trainer.config.lens_falloff == trainer.calibration.estimate.k == trainer.lens_falloff
+    assert trainer.config.appearance is True and trainer.appearance is not None
     assert not trainer.appearance.vignetting  # the falloff is known now: the cameras learn none
 
 
@@ -62,13 +133,48 @@ def test_stg_train_says_what_it_measured_and_a_resumed_run_keeps_it(realistic, t
     from stg_train.pipeline import train
 
     dataset, _ = realistic
-    config = TrainConfig(lens_falloff="auto", iterations=2, num_points=500)
+    config = TrainConfig(iterations=2, num_points=500)
     first = train(dataset, tmp_path, config)
     said = capsys.readouterr().err
-    assert "lens falloff measured from the cameras' overlap: K1" in said
+    assert "lens falloff measured from the cameras' overlap: K1" in said and "training with it" in said
+    assert "learning a per-camera appearance" in said
     k = first["settings"]["lens_falloff"]
     assert len(k) == 2 and -0.4 < k[0] < -0.2  # numbers, not "auto": what the checkpoint and metrics keep
-    again = train(dataset, tmp_path, TrainConfig(lens_falloff="auto", iterations=3, num_points=500), resume=True,
+    assert first["settings"]["appearance"] is True
+    again = train(dataset, tmp_path, TrainConfig(iterations=3, num_points=500), resume=True,
                   given={"lens_falloff": "--lens-falloff auto", "iterations": "--iterations 3"})
-    assert again["settings"]["lens_falloff"] == k and again["iterations"] == 3
+    assert again["settings"]["lens_falloff"] == k and again["settings"]["appearance"] is True
+    assert again["iterations"] == 3
     assert "lens falloff measured" not in capsys.readouterr().err  # not measured again
+
+
+def test_checkpoints_saved_before_auto_resume_without_either():
+    old = {k: v for k, v in asdict(TrainConfig()).items() if k not in ("appearance", "lens_falloff")}
+    config = TrainConfig.from_dict(old)
+    assert config.appearance is False and config.lens_falloff is None
+
+
+def test_segments_share_one_measurement_of_the_whole_video(tmp_path, capsys):
+    from stg_train.pipeline import train
+
+    dataset, _ = _capture(tmp_path / "data", CaptureModel(seed=0))
+    metrics = train(dataset, tmp_path / "out", TrainConfig(iterations=2, num_points=500), segment_frames=1)
+    said = capsys.readouterr().err
+    assert said.count("lens falloff measured from the cameras' overlap") == 1  # once, not per segment
+    assert "at frames 0, 1" in said  # the whole video's frames
+    segment = [json.loads((tmp_path / "out" / "segments" / f"{i:02d}" / "metrics.json").read_text()) for i in range(2)]
+    chosen = {tuple(m["settings"]["lens_falloff"]) for m in segment}
+    assert len(chosen) == 1 and metrics["settings"]["appearance"] is True
+
+
+def test_stg_train_leaves_both_auto_unless_told():
+    from stg_train.cli.train import _config, build_parser
+
+    def config(*options):
+        return _config(build_parser().parse_args(["data", "--out", "out", *options]), "numba")
+
+    assert (config().lens_falloff, config().appearance) == ("auto", "auto")
+    told = config("--lens-falloff", "none", "--no-appearance")
+    assert (told.lens_falloff, told.appearance) == (None, False)
+    told = config("--lens-falloff=-0.2", "--appearance")
+    assert (told.lens_falloff, told.appearance) == ((-0.2, 0.0), True)
