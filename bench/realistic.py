@@ -13,9 +13,9 @@ refined.
                               [--height H] [--set KEY=VALUE ...] [--capture KEY=VALUE ...] [--threads 2]
                               [--data DIR] [--json PATH]
 
-Variants: default (TrainConfig's defaults: the falloff and the appearance "auto", decided from the
-rig's measurement, stg_train.self_calibration.calibrate_rig), default-pose (the same with pose
-refinement), plain (neither a falloff nor an appearance: the defaults before 2026-12-04), appearance,
+Variants: default (TrainConfig's defaults: the falloff, the appearance and the pose refinement "auto",
+decided from the rig's measurement, stg_train.self_calibration.calibrate_rig), plain (none of the
+three: the defaults before 2026-12-04), appearance,
 pose (pose_refine), both, colour (appearance without its vignetting term), known (both, with the capture's true vignetting given as TrainConfig.lens_falloff, as
 a flat-field calibration would give it), known-appearance (the same without pose refinement), measured
 and measured-appearance (the same two with the vignetting measured from the cameras' overlap before
@@ -49,19 +49,18 @@ from stg_train.pipeline import DEMO_SCENE
 from stg_train.synthetic import NOVEL_VIEWS, SyntheticScene, novel_view_dataset, write_n3v
 from stg_train.trainer import Trainer, TrainConfig
 
-#: Every variant but "default" starts from neither a falloff nor an appearance (the defaults before
-#: "auto", 2026-12-04).
-_OFF = {"appearance": False, "lens_falloff": None}
+#: Every variant but "default" starts from no falloff, no appearance and no pose refinement (the
+#: defaults before "auto", 2026-12-04).
+_OFF = {"appearance": False, "lens_falloff": None, "pose_refine": False}
 VARIANTS = {"default": {}, "plain": _OFF, "appearance": {**_OFF, "appearance": True},
             "pose": {**_OFF, "pose_refine": True},
             "both": {**_OFF, "appearance": True, "pose_refine": True},
             "colour": {**_OFF, "appearance": True, "appearance_vignetting": False},
             "known": {"appearance": True, "pose_refine": True, "lens_falloff": "capture"},
-            "known-appearance": {"appearance": True, "lens_falloff": "capture"},
+            "known-appearance": {"appearance": True, "pose_refine": False, "lens_falloff": "capture"},
             "measured": {"appearance": True, "pose_refine": True, "lens_falloff": "auto"},
             "lens-auto": {**_OFF, "lens_falloff": "auto"},
-            "measured-appearance": {"appearance": True, "lens_falloff": "auto"},
-            "default-pose": {"pose_refine": True}}
+            "measured-appearance": {"appearance": True, "pose_refine": False, "lens_falloff": "auto"}}
 
 
 def parse_setting(text: str) -> tuple[str, object]:
@@ -165,7 +164,7 @@ def main() -> None:
                        "gaussians": trainer.params.count, "views": score(trainer, views)}
                 if trainer.calibration is not None and trainer.calibration.estimate is not None:
                     row["measured_falloff"] = list(trainer.calibration.estimate.k)
-                    row["chosen"] = {"lens_falloff": trainer.config.lens_falloff, "appearance": trainer.config.appearance}
+                    row["chosen"] = {k: getattr(trainer.config, k) for k in ("lens_falloff", "appearance", "pose_refine")}
                 if trainer.appearance is not None:
                     summary = trainer.appearance.summary()
                     row["vignetting"] = np.mean([a["vignetting"] for a in summary], axis=0).tolist()
@@ -191,7 +190,7 @@ def main() -> None:
                 if "chosen" in row:
                     k = row["chosen"]["lens_falloff"]
                     extra += (f"  chosen: falloff {None if k is None else np.round(k, 3).tolist()}, "
-                              f"appearance {row['chosen']['appearance']}")
+                              f"appearance {row['chosen']['appearance']}, pose refinement {row['chosen']['pose_refine']}")
                 print(f"seed {seed} {capture_name:9s} {variant:10s} {figures}{pose}{extra}  ({row['gaussians']} Gaussians, "
                       f"{row['seconds']:.0f} s)", flush=True)
     print("\nraw / colour-aligned PSNR against the clean lossless frames (held-out camera at its true pose)")

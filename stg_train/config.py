@@ -47,7 +47,8 @@ class TrainConfig:
     the loss only (stg_train.appearance): True, False, or "auto" (the default: on when the training
     cameras' colour gains, measured before training from what they see of the same surfaces, disagree;
     stg_train.self_calibration.calibrate_rig); pose_refine: a learned rigid correction of each training
-    camera's pose (stg_train.pose_refine); lens_falloff: the training cameras' known vignetting
+    camera's pose (stg_train.pose_refine): True, False, or "auto" (the default: on when what neighbouring
+    training cameras see strays from the epipolar lines of their stated poses); lens_falloff: the training cameras' known vignetting
     (k1, k2), e.g. from a flat-field calibration, applied to their renders before the loss as
     1 + k1 s + k2 s^2 (stg_train.lens; ValueError outside its range), when the appearance then learns none;
     None: none; "auto" (the default) measures it before training from what the training cameras see of
@@ -87,7 +88,7 @@ class TrainConfig:
     separate_rotation: bool = False
     appearance: bool | str = "auto"
     appearance_vignetting: bool = True
-    pose_refine: bool = False
+    pose_refine: bool | str = "auto"
     lens_falloff: tuple | str | None = "auto"
     camera_learning_rates: dict = field(default_factory=dict)
     segment_context: int = 4
@@ -114,4 +115,4 @@ class TrainConfig:
 
 
 #: The settings whose default became "auto" (2026-12-04), with the value a checkpoint without them ran with.
-SAVED_BEFORE_AUTO = {"appearance": False, "lens_falloff": None}
+SAVED_BEFORE_AUTO = {"appearance": False, "lens_falloff": None, "pose_refine": False}

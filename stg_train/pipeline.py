@@ -43,7 +43,7 @@ from .convert.merge import merge_files
 from .data import DataError, load_dataset
 from .export import export_trainer
 from .metrics import evaluate_player, heldout, lpips_models
-from .self_calibration import calibrate_rig, needs_calibration
+from .self_calibration import AUTO_FIELDS, calibrate_rig, needs_calibration
 from .segments import (PLAN_NAME, SegmentError, cache_chunks, check_plan, finished, missing_message, plan_segments, pooled,
                        segment_dir, segment_view, worst_check)
 from .synthetic import SyntheticScene, write_n3v
@@ -86,12 +86,12 @@ def warnings_said():
 
 
 #: The progress bar's title while the rig is measured (stg_train.self_calibration).
-CALIBRATION_STAGE = "lens falloff and camera colours (the cameras' overlap)"
+CALIBRATION_STAGE = "measuring the rig (lenses, colours, poses)"
 
 
 def new_trainer(dataset, config: TrainConfig, out: Path, quiet: bool = False) -> Trainer:
-    """Trainer(dataset, config, out) with progress bars while the rig is measured (a lens falloff or
-    appearance "auto"), while SfM computes the initial points and while the optical flow gives them their
+    """Trainer(dataset, config, out) with progress bars while the rig is measured (a setting "auto",
+    stg_train.self_calibration), while SfM computes the initial points and while the optical flow gives them their
     motion; its warnings (SfM found too few points) are printed as "stg-train: warning: ..." lines, and
     what the rig's measurement decided and the initial points' split, coverage and depth bounds as
     "stg-train: ..." lines (unless quiet)."""
@@ -109,7 +109,7 @@ def new_trainer(dataset, config: TrainConfig, out: Path, quiet: bool = False) ->
 
 def calibrated_once(dataset, config: TrainConfig, given: dict[str, str] | None = None,
                     quiet: bool = False) -> tuple[TrainConfig, dict[str, str]]:
-    """For a video trained in segments: (config, given) with a lens falloff or appearance "auto" decided
+    """For a video trained in segments: (config, given) with its "auto" settings (AUTO_FIELDS) decided
     once from the whole video's frames (stg_train.self_calibration.calibrate_rig; said on stderr unless
     quiet), so that every segment trains with the same choices; `given` loses the options so decided (a
     resumed segment keeps its checkpoint's choices). Unchanged when nothing is "auto"."""
@@ -120,7 +120,7 @@ def calibrated_once(dataset, config: TrainConfig, given: dict[str, str] | None =
     if not quiet:
         for line in calibration.notes:
             print(f"stg-train: {line}", file=sys.stderr)
-    auto = {name for name in ("lens_falloff", "appearance") if getattr(config, name) == "auto"}
+    auto = {name for name in AUTO_FIELDS if getattr(config, name) == "auto"}
     return decided, {k: v for k, v in (given or {}).items() if k not in auto}
 
 
@@ -275,7 +275,7 @@ def _resume(dataset, ckpt: Path, out: Path, config: TrainConfig, given: dict[str
         new, old = getattr(config, name), getattr(saved, name)
         if name in ("device", "splatter") or new == old:
             continue
-        if name in ("lens_falloff", "appearance") and new == "auto":  # the checkpoint holds what its run measured
+        if name in AUTO_FIELDS and new == "auto":  # the checkpoint holds what its run measured
             continue
         if name not in RESUMABLE:
             raise ResumeConflict(f"{option}: {ckpt} was trained with {name} = {old!r}, which a resumed run keeps: "

@@ -1,10 +1,12 @@
-"""The rig's lens falloff (vignetting) measured from its own pictures, before training
-(`TrainConfig(lens_falloff="auto")`, `stg-train --lens-falloff auto`).
+"""The rig measured from its own pictures before training: its lenses' falloff (vignetting), its
+cameras' colour gains and whether their stated poses agree with what they see (`TrainConfig`'s
+lens_falloff, appearance and pose_refine "auto", the defaults; `stg-train --lens-falloff auto`).
 
-Why not learn it with the scene: a falloff that every lens shares is, for a rig whose cameras converge,
-nearly the same thing as a darker rim of the scene, so training takes it into the scene (docs/training.md,
-"Real captures"). Two cameras that see one surface point at the same instant see it at different
-distances from their principal points, though, and that difference is what this module measures:
+Why not learn the falloff with the scene: a falloff that every lens shares is, for a rig whose cameras
+converge, nearly the same thing as a darker rim of the scene, so training takes it into the scene
+(docs/training.md, "Real captures"). Two cameras that see one surface point at the same instant see it
+at different distances from their principal points, though, and that difference is what this module
+measures:
 
 1. For each training camera c and its `neighbours` nearest training cameras c' (by centre), at a few
    frames: dense optical flow from the picture of c to that of c' (OpenCV DIS, on brightness-normalised grey
@@ -20,13 +22,14 @@ distances from their principal points, though, and that difference is what this 
 
 The log-polynomial is then written as the trainer's `1 + k1 s + k2 s^2` (a least-squares fit over
 s in [0, 1]). Pinhole and fisheye cameras alike (s is measured in pixels from the principal point).
-The same pixel pairs also fit each camera's own falloff (`FalloffEstimate.camera_corners`), which tells
-whether the lenses share one.
+The same pixel pairs also fit each camera's own falloff (`RigMeasurement.camera_corners`), which tells
+whether the lenses share one. The last round's flow on textured pixels, against the epipolar lines of
+the stated poses, tells whether those poses are off (`RigMeasurement.epipolar`).
 
 `calibrate_rig` turns the measurement into what training uses, with a quiet fallback: the falloff
 (none where the cameras do not overlap, the lenses differ, the estimate is out of range or too small to
-matter) and whether the cameras' colours disagree enough to learn a per-camera appearance
-(`TrainConfig(lens_falloff="auto", appearance="auto")`, the defaults).
+matter), whether the cameras' colours disagree enough to learn a per-camera appearance, and whether
+the poses are off enough to refine them.
 """
 from __future__ import annotations
 
@@ -42,6 +45,8 @@ from .lens import corner_r2, known_falloff, lens_brightness
 FB_TOLERANCE = 0.3
 #: and where |Laplacian| of the grey picture (in [0, 1]) is below this: smooth surfaces, no edges.
 SMOOTH = 0.05
+#: The pose check (the epipolar distances) takes matched pixels whose |Laplacian| is above this: texture.
+TEXTURED = 0.02
 #: Colours below or above these (in [0, 1], any channel) are dark or clipped: left out.
 DARK, CLIPPED = 0.05, 0.98
 #: At most this many pixel pairs enter the fit (a random subset beyond).
@@ -56,22 +61,30 @@ MAX_CAMERA_PAIRS = 50_000
 #: 1.014-1.021: the measurement's own bias);
 NEGLIGIBLE = 0.03
 #: the lenses share one falloff when every camera's own corner brightness is within this of the rig's
-#: (0.022 at most on the synthetic captures, where they do; 0.27 where half the lenses vignette 30 %);
-LENS_SPREAD = 0.05
+#: (up to 0.022 on the synthetic forward-facing captures and 0.049 on the outward-facing pinhole dome,
+#: where they do; 0.27-0.29 where one or half of the lenses vignette 30 %);
+LENS_SPREAD = 0.1
 #: the falloff is trusted when its corner brightness's two standard errors are below this (0.001-0.002 on
 #: the synthetic captures; large only where the rig's geometry leaves the falloff undetermined);
 UNCERTAIN = 0.05
 #: the cameras' colours disagree, and a per-camera appearance is learned, when the RMS of their log
 #: colour gains exceeds this (0.004 on a clean capture, 0.09-0.16 with the default `stg-synth --realistic`).
 GAIN_SPREAD = 0.03
+#: the stated poses are off, and pose refinement is on, when the matched pixels' median distance from
+#: their epipolar lines exceeds this many pixels of the pictures as measured (0.09-0.14 on the clean
+#: synthetic rigs, 0.27-0.32 with `stg-synth --realistic`'s pose error of 0.15 degrees and 0.01 units).
+EPIPOLAR = 0.2
 
 
-class FalloffEstimate(NamedTuple):
+class RigMeasurement(NamedTuple):
     """k: (k1, k2) of the brightness 1 + k1 s + k2 s^2 shared by the rig's lenses; gains: (C, 3) each
     training camera's colour gains relative to the rig's (their geometric mean over the cameras is 1;
     rows in dataset.train_cameras order); pairs: pixel pairs found in the last round; frames: the
     frames used; camera_corners: (C,) each camera's own corner brightness, fitted with a falloff of its
-    own; corner_error: two standard errors of the shared corner brightness (from the fit's residuals)."""
+    own; corner_error: two standard errors of the shared corner brightness (from the fit's residuals);
+    epipolar: the median distance of the matched textured pixels from the epipolar lines of the stated
+    poses, in pixels of the pictures as measured (nan when none); scale: those pictures' size over the
+    cameras' (at most 1)."""
 
     k: tuple[float, float]
     gains: np.ndarray
@@ -79,6 +92,8 @@ class FalloffEstimate(NamedTuple):
     frames: tuple[int, ...]
     camera_corners: np.ndarray
     corner_error: float
+    epipolar: float
+    scale: float
 
     @property
     def corner_brightness(self) -> float:
@@ -100,15 +115,17 @@ class FalloffEstimate(NamedTuple):
                 f"{self.pairs} pixel pairs at frames {', '.join(map(str, self.frames))})")
 
 
-def estimate_lens_falloff(dataset, frames=None, neighbours: int = 4, rounds: int = 3, max_side: int = 320,
-                          seed: int = 0, progress: Callable[[int, int], None] | None = None) -> FalloffEstimate:
-    """The falloff shared by the training cameras of `dataset` (stg_train.data.Dataset), from `frames`
-    (default: the first and the middle frame). progress(done, total) is called per camera pair and round.
+def measure_rig(dataset, frames=None, neighbours: int = 4, rounds: int = 3, max_side: int = 320,
+                seed: int = 0, progress: Callable[[int, int], None] | None = None) -> RigMeasurement:
+    """The training cameras of `dataset` (stg_train.data.Dataset) measured at `frames` (default: the
+    first and the middle frame): their lenses' shared falloff, each one's own, their colour gains and how
+    far their matches stray from the stated poses' epipolar lines (RigMeasurement). progress(done,
+    total) is called per camera pair and round.
     Raises ValueError when the cameras overlap too little (fewer than MIN_PAIRS pixel pairs). The
     estimate may lie outside the range a known falloff must keep (calibrate_rig checks it)."""
     cams = list(dataset.train_cameras)
     if len(cams) < 2:
-        raise ValueError(f"the lens falloff needs two or more training cameras, the dataset has {len(cams)}")
+        raise ValueError(f"measuring the rig needs two or more training cameras, the dataset has {len(cams)}")
     frames = tuple(sorted({0, dataset.num_frames // 2})) if frames is None else tuple(int(f) for f in frames)
     scale = min(1.0, max_side / max(dataset.width, dataset.height))
     pictures = {(c, f): _scaled(dataset.image(c, f), scale) for c in cams for f in frames}
@@ -120,20 +137,22 @@ def estimate_lens_falloff(dataset, frames=None, neighbours: int = 4, rounds: int
     logv, gains, total = np.zeros(2), np.zeros((len(cams), 3)), 0
     work, done = rounds * len(pairs) * len(frames), 0
     for _ in range(rounds):
-        rows = []
+        rows, distances = [], []  # (the last round's are kept)
         for f in frames:
             corrected = {c: (pictures[c, f] / _brightness(radial[c], logv, gains[i])[..., None]).astype(np.float32)
                          for i, c in enumerate(cams)}
             for i, j in pairs:
-                rows.append(_pixel_pairs(blurred[cams[i], f], blurred[cams[j], f], corrected[cams[i]],
-                                         corrected[cams[j]], radial[cams[i]], radial[cams[j]], i, j))
+                match = _match(corrected[cams[i]], corrected[cams[j]])
+                rows.append(_pixel_pairs(blurred[cams[i], f], blurred[cams[j], f], match, radial[cams[i]],
+                                         radial[cams[j]], i, j))
+                distances.append(_epipolar_distances(dataset.cameras[cams[i]], dataset.cameras[cams[j]], match))
                 done += 1
                 if progress is not None:
                     progress(done, work)
         data = [np.concatenate(parts) for parts in zip(*rows)]
         total = len(data[0])
         if total < MIN_PAIRS:
-            raise ValueError(f"the training cameras overlap too little to measure their lens falloff "
+            raise ValueError(f"the training cameras overlap too little to measure them "
                              f"({total} pixel pairs, at least {MIN_PAIRS} needed)")
         if total > MAX_PAIRS:
             keep = rng.choice(total, MAX_PAIRS, replace=False)
@@ -141,35 +160,44 @@ def estimate_lens_falloff(dataset, frames=None, neighbours: int = 4, rounds: int
         gains, logv, error = _fit(*data, num_cameras=len(cams))
     subset = rng.permutation(len(data[0]))[:MAX_CAMERA_PAIRS]
     corners = _camera_corners(*[d[subset] for d in data], num_cameras=len(cams))
-    return FalloffEstimate(_as_polynomial(logv), np.exp(gains), total, frames, corners,
-                           float(2 * error * np.exp(logv.sum())))
+    distances = np.concatenate(distances)
+    return RigMeasurement(_as_polynomial(logv), np.exp(gains), total, frames, corners,
+                          float(2 * error * np.exp(logv.sum())),
+                          float(np.median(distances)) if len(distances) else float("nan"), scale)
 
 
 class RigCalibration(NamedTuple):
     """What training takes from the measurement (calibrate_rig). lens_falloff: (k1, k2), or None for
-    none; appearance: learn a per-camera appearance; estimate: the FalloffEstimate (None when it could
-    not be measured); notes: what was decided and why, one line each (for stg-train to print)."""
+    none; appearance: learn a per-camera appearance; pose_refine: refine the training cameras' poses;
+    estimate: the RigMeasurement (None when it could not be measured); notes: what was decided and why,
+    one line each (for stg-train to print)."""
 
     lens_falloff: tuple[float, float] | None
     appearance: bool
-    estimate: FalloffEstimate | None
+    pose_refine: bool
+    estimate: RigMeasurement | None
     notes: tuple[str, ...]
 
 
+#: The TrainConfig fields that may be "auto": decided by calibrate_rig.
+AUTO_FIELDS = ("lens_falloff", "appearance", "pose_refine")
+
+
 def needs_calibration(config) -> bool:
-    """Whether a TrainConfig leaves the lens falloff or the appearance "auto"."""
-    return "auto" in (config.lens_falloff, config.appearance)
+    """Whether a TrainConfig leaves the lens falloff, the appearance or the pose refinement "auto"."""
+    return any(getattr(config, name) == "auto" for name in AUTO_FIELDS)
 
 
 def calibrate_rig(dataset, config, progress: Callable[[int, int], None] | None = None):
-    """(config with lens_falloff and appearance "auto" decided, RigCalibration) for a TrainConfig whose
-    lens_falloff or appearance is "auto" (needs_calibration), from estimate_lens_falloff's measurement of
-    `dataset`. The falloff is trained with unless it cannot be measured or trusted (_decide_falloff);
-    the appearance is learned when the cameras' colour gains disagree (GAIN_SPREAD) or their lenses do
-    (LENS_SPREAD: each camera's appearance then learns its own falloff). Never raises for the rig: the
-    notes say what was decided and why. progress: as estimate_lens_falloff's."""
+    """(config with its "auto" fields decided, RigCalibration) for a TrainConfig with lens_falloff,
+    appearance or pose_refine "auto" (needs_calibration), from measure_rig's measurement of `dataset`.
+    The falloff is trained with unless it cannot be measured or trusted (_decide_falloff); the
+    appearance is learned when the cameras' colour gains disagree (GAIN_SPREAD) or their lenses do
+    (LENS_SPREAD: each camera's appearance then learns its own falloff); the poses are refined when the
+    matches stray from the stated poses' epipolar lines (EPIPOLAR). Never raises for the rig: the notes
+    say what was decided and why. progress: as measure_rig's."""
     try:
-        estimate = estimate_lens_falloff(dataset, progress=progress)
+        estimate = measure_rig(dataset, progress=progress)
     except ValueError as e:
         estimate, why = None, str(e)
     falloff, appearance, notes = config.lens_falloff, config.appearance, []
@@ -191,11 +219,21 @@ def calibrate_rig(dataset, config, progress: Callable[[int, int], None] | None =
             notes.append(f"camera colours: the training cameras' colour gains differ by "
                          f"{100 * estimate.gain_spread:.1f} % (RMS){' and their lenses differ' if lenses else ''}: "
                          f"{choice}")
-    return (replace(config, lens_falloff=falloff, appearance=appearance),
-            RigCalibration(falloff, appearance, estimate, tuple(notes)))
+    poses = config.pose_refine
+    if poses == "auto":
+        if estimate is None or not np.isfinite(estimate.epipolar):
+            poses = False
+            notes.append("camera poses: not checked (too few matched pixels); not refined (--pose-refine refines them)")
+        else:
+            poses = estimate.epipolar > EPIPOLAR
+            choice = "refining them (--no-pose-refine: not)" if poses else "not refined (--pose-refine refines them)"
+            notes.append(f"camera poses: matched pixels lie {estimate.epipolar:.2f} px (median) from the epipolar "
+                         f"lines of the stated poses, in pictures at {estimate.scale:.2g} of their size: {choice}")
+    return (replace(config, lens_falloff=falloff, appearance=appearance, pose_refine=poses),
+            RigCalibration(falloff, appearance, poses, estimate, tuple(notes)))
 
 
-def _decide_falloff(estimate: FalloffEstimate) -> tuple[tuple[float, float] | None, str]:
+def _decide_falloff(estimate: RigMeasurement) -> tuple[tuple[float, float] | None, str]:
     """(the falloff to train with or None, the note saying which and why)."""
     said = f"lens falloff measured from the cameras' overlap: {estimate.describe()}"
     corners = estimate.camera_corners
@@ -253,9 +291,19 @@ def _grey(picture: np.ndarray) -> np.ndarray:
     return np.clip(g * (0.4 * 255 / max(float(g.mean()), 1e-3)), 0, 255).astype(np.uint8)
 
 
-def _pixel_pairs(a, b, a_flow, b_flow, s_a, s_b, i, j):
-    """Pixels of picture a (h, w, 3; blurred) matched in picture b by the flow of the corrected pictures
-    a_flow, b_flow: (camera i, camera j, s at a, s at b, log colour at a (n, 3), log colour at b (n, 3))."""
+class _Match(NamedTuple):
+    """Dense flow from a picture to another: (h, w) float32 u2, v2, where each pixel (column, row) of the
+    first lands in the second; ok: (h, w) where forward and backward flow agree within FB_TOLERANCE and
+    the pixel lands inside; laplacian: (h, w) |Laplacian| of the first's grey picture (in [0, 1])."""
+
+    u2: np.ndarray
+    v2: np.ndarray
+    ok: np.ndarray
+    laplacian: np.ndarray
+
+
+def _match(a_flow: np.ndarray, b_flow: np.ndarray) -> _Match:
+    """The flow between two pictures (h, w, 3; corrected for the falloff and gains estimated so far)."""
     dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
     ga, gb = _grey(a_flow), _grey(b_flow)
     fwd, bwd = dis.calc(ga, gb, None), dis.calc(gb, ga, None)
@@ -265,7 +313,36 @@ def _pixel_pairs(a, b, a_flow, b_flow, s_a, s_b, i, j):
     back = cv2.remap(bwd, u2, v2, cv2.INTER_LINEAR)
     ok = (np.hypot(fwd[..., 0] + back[..., 0], fwd[..., 1] + back[..., 1]) < FB_TOLERANCE)
     ok &= (u2 > 1) & (u2 < w - 2) & (v2 > 1) & (v2 < h - 2)
-    ok &= np.abs(cv2.Laplacian(ga.astype(np.float32) / 255, cv2.CV_32F)) < SMOOTH
+    return _Match(u2, v2, ok, np.abs(cv2.Laplacian(ga.astype(np.float32) / 255, cv2.CV_32F)))
+
+
+def _epipolar_distances(camera_a, camera_b, match: _Match) -> np.ndarray:
+    """(n,) for the textured matched pixels (|Laplacian| above TEXTURED): how far, in pixels of the
+    scaled picture, each lands from the epipolar line its stated poses allow (the angle between the
+    second camera's ray and the plane through the first camera's ray and both centres, times the second
+    camera's focal length scaled). Pinhole and fisheye alike (Camera.camera_rays). Empty when the two
+    cameras share a centre."""
+    baseline = camera_b.center - camera_a.center
+    if np.linalg.norm(baseline) < 1e-9:
+        return np.zeros(0)
+    h, w = match.ok.shape
+    keep = match.ok & (match.laplacian > TEXTURED)
+    v, u = np.nonzero(keep)
+    sx, sy = camera_a.width / w, camera_a.height / h  # scaled picture -> the camera's pixels
+    ray_a = camera_a.camera_rays((u + 0.5) * sx, (v + 0.5) * sy) @ camera_a.R  # world directions
+    ray_b = camera_b.camera_rays((match.u2[keep] + 0.5) * (camera_b.width / w),
+                                 (match.v2[keep] + 0.5) * (camera_b.height / h)) @ camera_b.R
+    normal = np.cross(baseline, ray_a)
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+    angle = np.arcsin(np.clip(np.abs((normal * ray_b).sum(1)), 0.0, 1.0))
+    return angle * camera_b.fx * (w / camera_b.width)
+
+
+def _pixel_pairs(a, b, match: _Match, s_a, s_b, i, j):
+    """Pixels of picture a (h, w, 3; blurred) matched in picture b (`match`, smooth pixels only):
+    (camera i, camera j, s at a, s at b, log colour at a (n, 3), log colour at b (n, 3))."""
+    u2, v2 = match.u2, match.v2
+    ok = match.ok & (match.laplacian < SMOOTH)
     ca = a[ok]
     cb = np.stack([cv2.remap(np.ascontiguousarray(b[..., k]), u2, v2, cv2.INTER_LINEAR)[ok] for k in range(3)], 1)
     good = (ca.min(1) > DARK) & (cb.min(1) > DARK) & (ca.max(1) < CLIPPED) & (cb.max(1) < CLIPPED)

@@ -95,9 +95,9 @@ class Trainer:
     config, out_dir) or continue one with Trainer.resume(dataset, checkpoint_path). init_progress(done, total):
     called per frame while SfM computes the initial points (not when cached); motion_progress(done,
     total): per frame while the optical flow gives them their initial motion (motion_init "flow");
-    calibration_progress(done, total): per camera pair while the rig is measured for a lens_falloff or
-    appearance "auto" (stg_train.self_calibration; its RigCalibration is then `calibration`, else None:
-    the choices made are in self.config). initial: the
+    calibration_progress(done, total): per camera pair while the rig is measured for a lens_falloff,
+    appearance or pose_refine "auto" (stg_train.self_calibration; its RigCalibration is then
+    `calibration`, else None: the choices made are in self.config). initial: the
     stg_train.data.points.InitialPoints of a fresh run (None when resumed). A dataset without near/far
     bounds gets those the initialisation derived (self.dataset is then a view of it with them; a resumed
     run takes them from the checkpoint), so guided sampling clips to them as on N3V.
@@ -111,7 +111,7 @@ class Trainer:
             raise ValueError(f"motion_init must be one of {MOTION_INITS}, got {config.motion_init!r}")
         config = config.for_dataset(dataset)
         self.calibration = None
-        # lens falloff and appearance "auto": measured from the cameras' overlap (a resumed run keeps its choices)
+        # lens falloff, appearance, pose refinement "auto": decided from the rig (a resumed run keeps its choices)
         if needs_calibration(config) and _state is None:
             config, self.calibration = calibrate_rig(dataset, config, progress=calibration_progress)
         # (k1, k2) of a known vignetting, checked (a ValueError) before anything is computed

@@ -203,8 +203,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "(RMS), which stg-train prints; --no-appearance: never (docs/training.md)")
     p.add_argument("--pose-refine", action=argparse.BooleanOptionalAction, default=d.pose_refine,
                    help="refine each training camera's pose (a small rotation and translation) with the scene; "
-                        "writes OUT/refined_cameras.json, and the .stg stores the refined cameras (off by "
-                        "default; docs/training.md)")
+                        "writes OUT/refined_cameras.json, and the .stg stores the refined cameras. Default: on "
+                        "when what neighbouring cameras see lies over 0.2 px (median, in pictures of at most "
+                        "320 px) from the epipolar lines of the stated poses, which stg-train prints; "
+                        "--no-pose-refine: never (docs/training.md)")
     p.add_argument("--lens-falloff", type=_lens_falloff, default=d.lens_falloff, metavar="K1[,K2]|auto|none",
                    help="the cameras' known vignetting, e.g. from a flat-field calibration or the lens profile: "
                         "brightness 1 + K1 s + K2 s^2, s the squared distance from the principal point over its "

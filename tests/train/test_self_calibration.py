@@ -1,7 +1,7 @@
 """The rig's lens falloff measured from its own pictures (stg_train.self_calibration), on synthetic
 captures whose falloff and colour gains are known (stg_train.capture)."""
 import json
-from dataclasses import asdict
+from dataclasses import asdict, replace
 
 import numpy as np
 import pytest
@@ -12,7 +12,8 @@ from stg_train.config import TrainConfig
 from stg_train.data import load_n3v
 from stg_train.data.dataset import Dataset
 from stg_train.lens import corner_r2
-from stg_train.self_calibration import GAIN_SPREAD, calibrate_rig, estimate_lens_falloff
+from stg_train.rotations import rotation_from_axis_angle
+from stg_train.self_calibration import EPIPOLAR, GAIN_SPREAD, _epipolar_distances, _Match, calibrate_rig, measure_rig
 from stg_train.synthetic import SyntheticScene, write_n3v
 from stg_train.trainer import Trainer
 
@@ -32,7 +33,7 @@ def realistic(tmp_path_factory):
 
 def test_a_shared_falloff_and_the_cameras_gains_are_measured(realistic):
     dataset, effects = realistic
-    estimate = estimate_lens_falloff(dataset)
+    estimate = measure_rig(dataset)
     assert abs(estimate.corner_brightness - 0.7) < 0.04, estimate  # truth: 30 % darker at the corners
     truth = np.array([effects[c].gain * effects[c].white_balance for c in dataset.train_cameras])
     truth /= truth.mean(0)
@@ -48,7 +49,7 @@ def clean(tmp_path_factory):
 
 
 def test_a_clean_capture_measures_no_falloff(clean):
-    estimate = estimate_lens_falloff(clean)
+    estimate = measure_rig(clean)
     assert abs(estimate.corner_brightness - 1.0) < 0.04
     assert np.abs(estimate.camera_corners - 1.0).max() < 0.05  # each camera's own fit too
     assert estimate.gain_spread < GAIN_SPREAD / 3
@@ -56,9 +57,10 @@ def test_a_clean_capture_measures_no_falloff(clean):
 
 def test_auto_decides_nothing_to_correct_on_a_clean_capture(clean):
     config, calibration = calibrate_rig(clean, TrainConfig())
-    assert config.lens_falloff is None and config.appearance is False  # the run trains as before "auto"
-    assert calibration.lens_falloff is None and calibration.estimate is not None
+    assert (config.lens_falloff, config.appearance, config.pose_refine) == (None, False, False)  # as before "auto"
+    assert calibration.lens_falloff is None and calibration.estimate.epipolar < EPIPOLAR / 1.5
     assert "training without one" in calibration.notes[0] and "no per-camera appearance" in calibration.notes[1]
+    assert "not refined" in calibration.notes[2]
 
 
 def test_auto_trains_a_clean_capture_to_the_same_bits_as_neither(clean):
@@ -68,18 +70,38 @@ def test_auto_trains_a_clean_capture_to_the_same_bits_as_neither(clean):
         state = trainer.params.state_dict()
         return {**state["raw"], **{f"decoder.{k}": v for k, v in state["decoder"].items()}}
 
-    auto, neither = trained(), trained(lens_falloff=None, appearance=False)  # the measurement draws no random number
+    auto = trained()  # the measurement draws no random number
+    neither = trained(lens_falloff=None, appearance=False, pose_refine=False)
     assert auto.keys() == neither.keys() and all(torch.equal(auto[k], neither[k]) for k in auto)
 
 
 def test_auto_decides_a_falloff_and_an_appearance_on_a_realistic_capture(realistic):
     dataset, _ = realistic
-    config, calibration = calibrate_rig(dataset, TrainConfig(pose_refine=True))
+    config, calibration = calibrate_rig(dataset, TrainConfig(model="lite"))
     assert config.lens_falloff == calibration.estimate.k and abs(calibration.estimate.corner_brightness - 0.7) < 0.04
     assert config.appearance is True and calibration.estimate.gain_spread > 2 * GAIN_SPREAD
-    assert config.pose_refine  # the rest is untouched
-    given, _ = calibrate_rig(dataset, TrainConfig(lens_falloff=(-0.3, 0.0), appearance=False))
-    assert given.lens_falloff == (-0.3, 0.0) and given.appearance is False  # nothing auto: nothing decided
+    assert config.pose_refine is True and calibration.estimate.epipolar > 1.2 * EPIPOLAR  # 0.15 degrees off
+    assert "refining them" in calibration.notes[2]
+    assert config.model == "lite"  # the rest is untouched
+    given, _ = calibrate_rig(dataset, TrainConfig(lens_falloff=(-0.3, 0.0), appearance=False, pose_refine=False))
+    assert (given.lens_falloff, given.appearance, given.pose_refine) == ((-0.3, 0.0), False, False)  # as given
+
+
+@pytest.mark.parametrize("model", ["pinhole", "fisheye"])
+def test_the_epipolar_distance_is_zero_for_true_matches_and_grows_with_a_pose_error(model):
+    a, b = SyntheticScene().dome_cameras(2, 160, 120, hfov_deg=100.0, model=model)
+    v, u = np.mgrid[0:120, 0:160].astype(np.float64)
+    points = a.unproject(u + 0.5, v + 0.5, 3.0 + 0.5 * np.sin(u / 9.0))  # a wavy surface in front of a
+    uv, z = b.project(points.reshape(-1, 3))
+    match = _Match((uv[:, 0] - 0.5).reshape(120, 160).astype(np.float32),
+                   (uv[:, 1] - 0.5).reshape(120, 160).astype(np.float32),
+                   (z > 0).reshape(120, 160), np.ones((120, 160), np.float32))  # the true matches
+    exact = _epipolar_distances(a, b, match)
+    assert len(exact) > 10_000 and np.median(exact) < 1e-3
+    w2c = b.world_to_camera.copy()
+    w2c[:3, :3] = rotation_from_axis_angle(np.radians([0.15, 0.0, 0.0])) @ w2c[:3, :3]  # stated 0.15 degrees off
+    off = np.median(_epipolar_distances(a, replace(b, world_to_camera=w2c), match))
+    assert 0.03 < off < 0.3, off  # at most 0.15 degrees x the focal length (0.25 px), along the lines' normal
 
 
 def _vignetted(dataset, cameras, amount=0.3):
@@ -95,7 +117,7 @@ def _vignetted(dataset, cameras, amount=0.3):
 
 def test_lenses_that_differ_are_told_apart_and_no_shared_falloff_is_trained(clean):
     mixed = _vignetted(clean, [c for c in clean.train_cameras if c % 2])  # every other lens vignettes 30 %
-    estimate = estimate_lens_falloff(mixed)
+    estimate = measure_rig(mixed)
     corners = dict(zip(mixed.train_cameras, estimate.camera_corners))
     assert all(abs(corners[c] - (0.7 if c % 2 else 1.0)) < 0.05 for c in corners), corners
     config, calibration = calibrate_rig(mixed, TrainConfig())
@@ -115,17 +137,18 @@ def test_pictures_with_nothing_to_match_are_refused():
     cams = SyntheticScene().cameras(4, 64, 48)
     dark = Dataset(cams, np.zeros((4, 1, 48, 64, 3), np.uint8), 30.0, test_cameras=[0])
     with pytest.raises(ValueError, match="overlap too little"):
-        estimate_lens_falloff(dark)
+        measure_rig(dark)
     with pytest.raises(ValueError, match="two or more training cameras"):
-        estimate_lens_falloff(Dataset(cams[:2], np.zeros((2, 1, 48, 64, 3), np.uint8), 30.0, test_cameras=[0]))
+        measure_rig(Dataset(cams[:2], np.zeros((2, 1, 48, 64, 3), np.uint8), 30.0, test_cameras=[0]))
 
 
 def test_the_trainer_measures_auto_and_trains_with_the_numbers(realistic):
     dataset, _ = realistic
-    trainer = Trainer(dataset, TrainConfig(iterations=1, num_points=500))  # the defaults: both "auto"
+    trainer = Trainer(dataset, TrainConfig(iterations=1, num_points=500))  # the defaults: "auto"
     assert trainer.calibration is not None
     assert trainer.config.lens_falloff == trainer.calibration.estimate.k == trainer.lens_falloff
     assert trainer.config.appearance is True and trainer.appearance is not None
+    assert trainer.config.pose_refine is True and trainer.poses is not None
     assert not trainer.appearance.vignetting  # the falloff is known now: the cameras learn none
 
 
@@ -149,9 +172,9 @@ def test_stg_train_says_what_it_measured_and_a_resumed_run_keeps_it(realistic, t
 
 
 def test_checkpoints_saved_before_auto_resume_without_either():
-    old = {k: v for k, v in asdict(TrainConfig()).items() if k not in ("appearance", "lens_falloff")}
+    old = {k: v for k, v in asdict(TrainConfig()).items() if k not in ("appearance", "lens_falloff", "pose_refine")}
     config = TrainConfig.from_dict(old)
-    assert config.appearance is False and config.lens_falloff is None
+    assert (config.appearance, config.lens_falloff, config.pose_refine) == (False, None, False)
 
 
 def test_segments_share_one_measurement_of_the_whole_video(tmp_path, capsys):
@@ -173,8 +196,8 @@ def test_stg_train_leaves_both_auto_unless_told():
     def config(*options):
         return _config(build_parser().parse_args(["data", "--out", "out", *options]), "numba")
 
-    assert (config().lens_falloff, config().appearance) == ("auto", "auto")
-    told = config("--lens-falloff", "none", "--no-appearance")
-    assert (told.lens_falloff, told.appearance) == (None, False)
-    told = config("--lens-falloff=-0.2", "--appearance")
-    assert (told.lens_falloff, told.appearance) == ((-0.2, 0.0), True)
+    assert (config().lens_falloff, config().appearance, config().pose_refine) == ("auto", "auto", "auto")
+    told = config("--lens-falloff", "none", "--no-appearance", "--no-pose-refine")
+    assert (told.lens_falloff, told.appearance, told.pose_refine) == (None, False, False)
+    told = config("--lens-falloff=-0.2", "--appearance", "--pose-refine")
+    assert (told.lens_falloff, told.appearance, told.pose_refine) == ((-0.2, 0.0), True, True)
