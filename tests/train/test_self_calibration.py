@@ -1,5 +1,6 @@
-"""The rig's lens falloff measured from its own pictures (stg_train.self_calibration), on synthetic
-captures whose falloff and colour gains are known (stg_train.capture)."""
+"""The rig measured from its own pictures before training (stg_train.self_calibration): its lenses'
+falloff, its cameras' colour gains and their stated poses against the epipolar lines, on synthetic
+captures whose truth is known (stg_train.capture), and what training decides from it ("auto")."""
 import json
 from dataclasses import asdict, replace
 
