@@ -48,10 +48,10 @@ class TrainConfig:
     cameras' colour gains, measured before training from what they see of the same surfaces, disagree;
     stg_train.self_calibration.calibrate_rig); pose_refine: a learned rigid correction of each training
     camera's pose (stg_train.pose_refine): True, False, or "auto" (the default: on when what neighbouring
-    training cameras see strays from the epipolar lines of their stated poses); lens_falloff: the training cameras' known vignetting
-    (k1, k2), e.g. from a flat-field calibration, applied to their renders before the loss as
-    1 + k1 s + k2 s^2 (stg_train.lens; ValueError outside its range), when the appearance then learns none;
-    None: none; "auto" (the default) measures it before training from what the training cameras see of
+    training cameras see strays from the epipolar lines of their stated poses); lens_falloff: the
+    training cameras' known vignetting (k1, k2), e.g. from a flat-field calibration, applied to their
+    renders before the loss as 1 + k1 s + k2 s^2 (stg_train.lens; ValueError outside its range), when
+    the appearance then learns none; None: none; "auto" (the default) measures it before training from what the training cameras see of
     the same surfaces, and trains without one where it cannot be measured or is too small to matter
     (stg_train.self_calibration; the checkpoint keeps the choices made);
     camera_learning_rates: overrides of their rates (keys "matrix", "bias", "vignetting" of

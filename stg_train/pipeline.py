@@ -91,10 +91,10 @@ CALIBRATION_STAGE = "measuring the rig (lenses, colours, poses)"
 
 def new_trainer(dataset, config: TrainConfig, out: Path, quiet: bool = False) -> Trainer:
     """Trainer(dataset, config, out) with progress bars while the rig is measured (a setting "auto",
-    stg_train.self_calibration), while SfM computes the initial points and while the optical flow gives them their
-    motion; its warnings (SfM found too few points) are printed as "stg-train: warning: ..." lines, and
-    what the rig's measurement decided and the initial points' split, coverage and depth bounds as
-    "stg-train: ..." lines (unless quiet)."""
+    stg_train.self_calibration), while SfM computes the initial points and while the optical flow gives
+    them their motion; its warnings (SfM found too few points) are printed as "stg-train: warning: ..."
+    lines, and what the rig's measurement decided and the initial points' split, coverage and depth
+    bounds as "stg-train: ..." lines (unless quiet)."""
     with warnings_said(), progress_stages(enabled=not quiet) as stage:
         trainer = Trainer(dataset, config, out_dir=out, init_progress=stage("structure from motion"),
                           motion_progress=stage("initial motion (optical flow)"),

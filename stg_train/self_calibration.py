@@ -111,6 +111,7 @@ class RigMeasurement(NamedTuple):
         return float(np.sqrt(np.mean(np.log(self.gains) ** 2)))
 
     def describe(self) -> str:
+        """The falloff as stg-train prints it: K1, K2, the corner brightness, the pairs and the frames."""
         return (f"K1 {self.k[0]:.3f}, K2 {self.k[1]:.3f} (corner brightness {self.corner_brightness:.3f}; "
                 f"{self.pairs} pixel pairs at frames {', '.join(map(str, self.frames))})")
 
@@ -136,8 +137,8 @@ def measure_rig(dataset, frames=None, neighbours: int = 4, rounds: int = 3, max_
     rng = np.random.default_rng(seed)
     logv, gains, total = np.zeros(2), np.zeros((len(cams), 3)), 0
     work, done = rounds * len(pairs) * len(frames), 0
-    for _ in range(rounds):
-        rows, distances = [], []  # (the last round's are kept)
+    for round_ in range(rounds):
+        rows, distances = [], []  # the epipolar distances: from the last round's flow only
         for f in frames:
             corrected = {c: (pictures[c, f] / _brightness(radial[c], logv, gains[i])[..., None]).astype(np.float32)
                          for i, c in enumerate(cams)}
@@ -145,7 +146,8 @@ def measure_rig(dataset, frames=None, neighbours: int = 4, rounds: int = 3, max_
                 match = _match(corrected[cams[i]], corrected[cams[j]])
                 rows.append(_pixel_pairs(blurred[cams[i], f], blurred[cams[j], f], match, radial[cams[i]],
                                          radial[cams[j]], i, j))
-                distances.append(_epipolar_distances(dataset.cameras[cams[i]], dataset.cameras[cams[j]], match))
+                if round_ == rounds - 1:
+                    distances.append(_epipolar_distances(dataset.cameras[cams[i]], dataset.cameras[cams[j]], match))
                 done += 1
                 if progress is not None:
                     progress(done, work)
@@ -160,7 +162,7 @@ def measure_rig(dataset, frames=None, neighbours: int = 4, rounds: int = 3, max_
         gains, logv, error = _fit(*data, num_cameras=len(cams))
     subset = rng.permutation(len(data[0]))[:MAX_CAMERA_PAIRS]
     corners = _camera_corners(*[d[subset] for d in data], num_cameras=len(cams))
-    distances = np.concatenate(distances)
+    distances = np.concatenate(distances) if distances else np.zeros(0)
     return RigMeasurement(_as_polynomial(logv), np.exp(gains), total, frames, corners,
                           float(2 * error * np.exp(logv.sum())),
                           float(np.median(distances)) if len(distances) else float("nan"), scale)
@@ -222,8 +224,8 @@ def calibrate_rig(dataset, config, progress: Callable[[int, int], None] | None =
     poses = config.pose_refine
     if poses == "auto":
         if estimate is None or not np.isfinite(estimate.epipolar):
-            poses = False
-            notes.append("camera poses: not checked (too few matched pixels); not refined (--pose-refine refines them)")
+            poses, reason = False, why if estimate is None else "no textured pixel was matched"
+            notes.append(f"camera poses: not checked ({reason}); not refined (--pose-refine refines them)")
         else:
             poses = estimate.epipolar > EPIPOLAR
             choice = "refining them (--no-pose-refine: not)" if poses else "not refined (--pose-refine refines them)"

@@ -126,12 +126,14 @@ def test_lenses_that_differ_are_told_apart_and_no_shared_falloff_is_trained(clea
     assert config.appearance is True and "their lenses differ" in calibration.notes[1]  # each learns its own
 
 
-def test_a_rig_that_cannot_be_measured_trains_without_a_falloff_or_an_appearance():
+def test_a_rig_that_cannot_be_measured_trains_with_none_of_the_three():
     cams = SyntheticScene().cameras(4, 64, 48)
     dark = Dataset(cams, np.zeros((4, 1, 48, 64, 3), np.uint8), 30.0, test_cameras=[0])
     config, calibration = calibrate_rig(dark, TrainConfig())
-    assert config.lens_falloff is None and config.appearance is False and calibration.estimate is None
+    assert (config.lens_falloff, config.appearance, config.pose_refine) == (None, False, False)
+    assert calibration.estimate is None
     assert "not measured (the training cameras overlap too little" in calibration.notes[0]
+    assert "camera poses: not checked (the training cameras overlap too little" in calibration.notes[2]
 
 
 def test_pictures_with_nothing_to_match_are_refused():
