@@ -58,9 +58,9 @@ class TrainConfig:
     appearance.APPEARANCE_LR, "rotation", "translation" of pose_refine.POSE_LR); segment_context: for a video trained in segments, how many neighbouring
     frames on each side a segment is also fitted to (as context: it shows only its own frames, and the
     players crossfade over the seam where both neighbours have context; stg_train.segments);
-    edge_weight: how often the first and last frames of the video (trainer.EDGE_FRAMES of them; of a
-    segment, at an end where it has no context) are drawn for a training step, relative to the others
-    (ours; the reference draws every frame alike, 1).
+    edge_weight: how often the first and last frames a run shows (trainer.EDGE_FRAMES at each end: the
+    video's ends, and a segment's frames next to a seam) are drawn for a training step, relative to the
+    others (ours; the reference draws every frame alike, 1).
     docs/training.md says which defaults are the reference's and which are ours, with the measurements behind them.
     """
 

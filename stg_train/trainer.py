@@ -71,20 +71,19 @@ def shown_frames(dataset):
     return dataset.shown() if hasattr(dataset, "shown") else dataset
 
 
-#: How many frames at an end without context (trainer.frame_weights) TrainConfig.edge_weight applies to.
+#: How many frames at each end of the shown frames (trainer.frame_weights) TrainConfig.edge_weight applies to.
 EDGE_FRAMES = 3
 
 
 def frame_weights(num_frames: int, context: tuple[int, int], edge_weight: float) -> np.ndarray | None:
     """(num_frames,) probabilities of drawing each frame of a dataset whose first and last `context`
-    frames are context (Trainer.sample_frame): the EDGE_FRAMES frames at an end without context
-    `edge_weight` times as often as the others; None when they are all equal."""
+    frames are context (Trainer.sample_frame): the EDGE_FRAMES first and last frames it shows (a video's
+    ends, or a segment's frames next to a seam, its context frames beyond them) `edge_weight` times as
+    often as the others; None when they are all equal."""
     p = np.ones(num_frames)
     before, after = context
-    if not before:
-        p[:min(EDGE_FRAMES, num_frames)] = edge_weight
-    if not after:
-        p[max(0, num_frames - EDGE_FRAMES):] = edge_weight
+    p[before:before + EDGE_FRAMES] = edge_weight
+    p[max(before, num_frames - after - EDGE_FRAMES):num_frames - after] = edge_weight
     return None if np.all(p == p[0]) else p / p.sum()
 
 
@@ -260,9 +259,9 @@ class Trainer:
 
     # -- one step -------------------------------------------------------------------------------------
     def sample_frame(self) -> int:
-        """A frame index of the dataset, uniformly drawn, except that the EDGE_FRAMES frames at an end
-        without context (the video's first and last frames, or a segment's trained without context,
-        Dataset.context_frames) are drawn TrainConfig.edge_weight times as often (self.frame_p)."""
+        """A frame index of the dataset, uniformly drawn, except that the EDGE_FRAMES first and last frames
+        it shows (a video's ends, or a segment's frames next to a seam; Dataset.context_frames lie beyond
+        them) are drawn TrainConfig.edge_weight times as often (self.frame_p)."""
         if self.frame_p is None:
             return int(self.rng.integers(self.dataset.num_frames))
         return int(self.rng.choice(len(self.frame_p), p=self.frame_p))

@@ -47,7 +47,7 @@ view-volume initial points (--init; the reference uses SfM), initial motion from
 reference's are set for 30000 steps), guided sampling at the error patch's median depth after one
 poor view (the reference: the view's maximum depth, two views), pruning applied at densification,
 scale learning rate 0.005 (the reference's N3V configurations: 0.003), no rotation/motion separation,
-the video's first and last 3 frames drawn three times as often (--edge-weight; the reference draws
+each segment's first and last 3 frames drawn three times as often (--edge-weight; the reference draws
 every frame alike).
 Exit codes: 0 done, 2 bad data or arguments."""
 
@@ -142,9 +142,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "seam where both neighbours have context, over C frames (format 1.3; 0: hard cuts "
                         "as before; default %(default)s; docs/training.md, \"Seams\")")
     p.add_argument("--edge-weight", type=_edge_weight, default=d.edge_weight, metavar="W",
-                   help="draw the video's first and last frames (3 at each end) W times as often as the others "
-                        "for a training step: a video's ends are otherwise its weakest frames (1: every frame "
-                        "alike, as the reference; default %(default)s; docs/training.md, \"Seams\")")
+                   help="draw each segment's first and last frames (3 at each end: the video's ends and the "
+                        "frames next to a seam) W times as often as the others for a training step: a segment's "
+                        "ends are otherwise its weakest frames (1: every frame alike, as the reference; default "
+                        "%(default)s; docs/training.md, \"Seams\")")
     p.add_argument("--segments", type=_segment_list, default=None, metavar="LIST",
                    help="train only these segments, indices from 0: e.g. 2,3 or 0-2 (default: all); run "
                         "the others elsewhere, copy their OUT/segments/NN folders into OUT/segments, and "

@@ -309,10 +309,14 @@ def test_frame_weights_and_steps(dataset):
     view = dataset.frame_range(2, 4, context=(2, 1))
     assert [frame_time(view, j) for j in range(7)] == [-0.5, -0.25, 0.0, 0.25, 0.5, 0.75, 1.0]
 
-    assert frame_weights(10, (0, 0), 1.0) is None and frame_weights(10, (2, 2), 3.0) is None  # uniform
-    p = frame_weights(12, (2, 0), 3.0)  # the end without context drawn 3 times as often
+    assert frame_weights(10, (0, 0), 1.0) is None and frame_weights(10, (2, 2), 1.0) is None  # uniform
+    p = frame_weights(12, (2, 0), 3.0)  # the shown frames' ends drawn 3 times as often, the context's not
     assert p.sum() == pytest.approx(1.0)
-    assert np.allclose(p[-EDGE_FRAMES:] / p[5], 3.0) and np.allclose(p[:-EDGE_FRAMES], p[5])
+    weight = p / p[6]
+    assert np.allclose(weight[-EDGE_FRAMES:], 3.0) and np.allclose(weight[2:2 + EDGE_FRAMES], 3.0)
+    assert np.allclose(weight[:2], 1.0) and np.allclose(weight[2 + EDGE_FRAMES:-EDGE_FRAMES], 1.0)
+    weight = frame_weights(14, (4, 4), 3.0) / frame_weights(14, (4, 4), 3.0)[0]  # 6 shown frames, 3 at each end
+    assert np.allclose(weight, [1] * 4 + [3] * 6 + [1] * 4)
 
 
 def test_edge_weight_default_and_option():
