@@ -15,9 +15,9 @@ refined.
 
 Variants: default (TrainConfig's defaults: the falloff, the appearance and the pose refinement "auto",
 decided from the rig's measurement, stg_train.self_calibration.calibrate_rig), plain (none of the
-three: the defaults before 2026-12-04), appearance,
-pose (pose_refine), both, colour (appearance without its vignetting term), known (both, with the capture's true vignetting given as TrainConfig.lens_falloff, as
-a flat-field calibration would give it), known-appearance (the same without pose refinement), measured
+three: the defaults before 2026-12-04), appearance, pose (pose_refine), both, colour (appearance
+without its vignetting term), known (both, with the capture's true vignetting given as
+TrainConfig.lens_falloff, as a flat-field calibration would give it), known-appearance (the same without pose refinement), measured
 and measured-appearance (the same two with the vignetting measured from the cameras' overlap before
 training, TrainConfig.lens_falloff "auto": stg_train.self_calibration), lens-auto (that measurement
 alone, no appearance or pose refinement). Each seed

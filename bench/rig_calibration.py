@@ -1,9 +1,10 @@
 #!/usr/bin/env python
 """What the rig's measurement before training finds and decides (stg_train.self_calibration.calibrate_rig,
-TrainConfig's lens_falloff, appearance and pose_refine "auto"), on synthetic captures whose truth is known: the demo
-scene's 12 cameras at 160x120, 2 frames, captured cleanly, through `stg-synth --realistic`'s defaults
-(two seeds), with the vignetting alone, and cleanly with 30 % vignetting on every other lens or on one;
-and the scene's outward-facing dome rig of 12 fisheye or pinhole cameras of 120 degrees (`stg-synth --fisheye 120`, `--pinhole-dome 120`).
+TrainConfig's lens_falloff, appearance and pose_refine "auto"), on synthetic captures whose truth is
+known: the demo scene's 12 cameras at 160x120, 2 frames, captured cleanly, through `stg-synth
+--realistic`'s defaults (two seeds), with the pose error alone, with the vignetting alone, and cleanly
+with 30 % vignetting on every other lens or on one; and the scene's outward-facing dome rig of 12
+fisheye or pinhole cameras of 120 degrees (`stg-synth --fisheye 120`, `--pinhole-dome 120`).
 
     python bench/rig_calibration.py [--data DIR] [--json PATH]
 
@@ -32,6 +33,7 @@ from stg_train.self_calibration import calibrate_rig
 from stg_train.synthetic import SyntheticScene, write_immersive, write_n3v
 
 VIGNETTING_ALONE = dict(gain=0, white_balance=0, noise=0, rotation_deg=0, translation=0)
+POSE_ERROR_ALONE = dict(gain=0, white_balance=0, noise=0, vignetting=0)
 
 
 def captured(folder: Path, capture: CaptureModel | None) -> Dataset:
@@ -69,8 +71,7 @@ def main() -> None:
     captures = {"clean": clean,
                 "realistic, seed 0": captured(root / "realistic-0", CaptureModel(seed=0)),
                 "realistic, seed 1": captured(root / "realistic-1", CaptureModel(seed=1)),
-                "pose error alone": captured(root / "pose", CaptureModel(seed=0, gain=0, white_balance=0, noise=0,
-                                                                          vignetting=0)),
+                "pose error alone": captured(root / "pose", CaptureModel(seed=0, **POSE_ERROR_ALONE)),
                 "vignetting alone": captured(root / "vignetting", CaptureModel(seed=0, **VIGNETTING_ALONE)),
                 "clean, every other lens 30 %": vignetted(clean, [c for c in clean.train_cameras if c % 2]),
                 "clean, one lens 30 %": vignetted(clean, [clean.train_cameras[2]]),
@@ -85,7 +86,8 @@ def main() -> None:
                      "gain_spread": e.gain_spread, "epipolar": e.epipolar, "seconds": seconds,
                      "lens_falloff": config.lens_falloff, "appearance": config.appearance,
                      "pose_refine": config.pose_refine})
-        falloff = "none" if config.lens_falloff is None else f"K1 {config.lens_falloff[0]:.3f}, K2 {config.lens_falloff[1]:.3f}"
+        k = config.lens_falloff
+        falloff = "none" if k is None else f"K1 {k[0]:.3f}, K2 {k[1]:.3f}"
         print(f"{name:30s} corner {e.corner_brightness:.3f}  cameras {e.camera_corners.min():.3f}-"
               f"{e.camera_corners.max():.3f}  gains {100 * e.gain_spread:4.1f} %  epipolar {e.epipolar:.3f} px  "
               f"({seconds:.1f} s)  -> falloff {falloff}, appearance {'on' if config.appearance else 'off'}, "
