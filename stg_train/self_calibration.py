@@ -229,8 +229,9 @@ def calibrate_rig(dataset, config, progress: Callable[[int, int], None] | None =
         else:
             poses = estimate.epipolar > EPIPOLAR
             choice = "refining them (--no-pose-refine: not)" if poses else "not refined (--pose-refine refines them)"
+            size = "full-size pictures" if estimate.scale >= 1 else f"pictures scaled to {estimate.scale:.2g}"
             notes.append(f"camera poses: matched pixels lie {estimate.epipolar:.2f} px (median) from the epipolar "
-                         f"lines of the stated poses, in pictures at {estimate.scale:.2g} of their size: {choice}")
+                         f"lines of the stated poses, in {size}: {choice}")
     return (replace(config, lens_falloff=falloff, appearance=appearance, pose_refine=poses),
             RigCalibration(falloff, appearance, poses, estimate, tuple(notes)))
 
