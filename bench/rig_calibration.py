@@ -24,11 +24,10 @@ from pathlib import Path
 import stg_train  # noqa: F401  (first: it configures OpenMP before torch loads)
 import numpy as np
 
-from stg_train.capture import CaptureModel
+from stg_train.capture import CaptureModel, with_vignetting
 from stg_train.config import TrainConfig
 from stg_train.data import load_dataset, load_n3v
 from stg_train.data.dataset import Dataset
-from stg_train.lens import corner_r2
 from stg_train.self_calibration import calibrate_rig
 from stg_train.synthetic import SyntheticScene, write_immersive, write_n3v
 
@@ -50,17 +49,6 @@ def dome(folder: Path, model: str) -> Dataset:
     return load_dataset(folder)
 
 
-def vignetted(dataset: Dataset, cameras, amount: float = 0.3) -> Dataset:
-    """The dataset with the pictures of `cameras` (indices) darkened by 1 - amount s."""
-    frames = np.stack([[dataset.image(c, f) for f in range(dataset.num_frames)] for c in range(len(dataset.cameras))])
-    for c in cameras:
-        cam = dataset.cameras[c]
-        u, v = np.arange(cam.width) + 0.5 - cam.cx, np.arange(cam.height) + 0.5 - cam.cy
-        frames[c] *= (1 - amount * (u[None] ** 2 + v[:, None] ** 2) / corner_r2(cam))[None, ..., None]
-    return Dataset(dataset.cameras, np.clip(frames * 255 + 0.5, 0, 255).astype(np.uint8), dataset.fps,
-                   test_cameras=dataset.test_cameras)
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", help="folder for the captures (default: a new temporary one)")
@@ -73,8 +61,8 @@ def main() -> None:
                 "realistic, seed 1": captured(root / "realistic-1", CaptureModel(seed=1)),
                 "pose error alone": captured(root / "pose", CaptureModel(seed=0, **POSE_ERROR_ALONE)),
                 "vignetting alone": captured(root / "vignetting", CaptureModel(seed=0, **VIGNETTING_ALONE)),
-                "clean, every other lens 30 %": vignetted(clean, [c for c in clean.train_cameras if c % 2]),
-                "clean, one lens 30 %": vignetted(clean, [clean.train_cameras[2]]),
+                "clean, every other lens 30 %": with_vignetting(clean, [c for c in clean.train_cameras if c % 2]),
+                "clean, one lens 30 %": with_vignetting(clean, [clean.train_cameras[2]]),
                 "dome of fisheyes, clean": dome(root / "dome-fisheye", "fisheye"),
                 "dome of pinholes, clean": dome(root / "dome-pinhole", "pinhole")}
     rows = []

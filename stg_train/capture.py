@@ -15,6 +15,8 @@ Image model, on linear rgb in [0, 1] (H, W, 3), pixel centres at +0.5 (formats/s
 
 The pose error is a rotation of `rotation_deg` degrees about a random axis and a translation of
 `translation` world units in a random direction, applied to the camera's world-to-camera transform.
+
+`with_vignetting` gives a dataset some lenses of their own (a rig whose lenses differ).
 """
 from __future__ import annotations
 
@@ -25,7 +27,7 @@ import numpy as np
 from stg_runtime.camera import Camera
 
 from .gauge import corrections_between, gauge_part
-from .lens import corner_r2
+from .lens import radial_grid
 from .rotations import rotation_from_axis_angle
 
 
@@ -103,10 +105,7 @@ class CameraEffects:
 
     def vignette(self, camera: Camera) -> np.ndarray:
         """(H, W) brightness factor of the lens falloff (1 at the principal point)."""
-        u = np.arange(camera.width) + 0.5 - camera.cx
-        v = np.arange(camera.height) + 0.5 - camera.cy
-        r2 = u[None, :] ** 2 + v[:, None] ** 2
-        return 1.0 - self.vignetting * r2 / corner_r2(camera)
+        return 1.0 - self.vignetting * radial_grid(camera)
 
     def apply(self, image: np.ndarray, camera: Camera) -> np.ndarray:
         """The picture the camera records of `image` (H, W, 3) rgb in [0, 1]: float64, clipped to [0, 1].
@@ -181,3 +180,16 @@ def pose_errors(cameras, record: dict, names=None) -> dict:
         out["aligned_rotation_deg"] = float(np.degrees(np.linalg.norm(w - gw, axis=1)).mean())
         out["aligned_translation"] = float(np.linalg.norm(t - gt, axis=1).mean())
     return out
+
+
+def with_vignetting(dataset, cameras, amount: float = 0.3):
+    """A copy of `dataset` (stg_train.data.Dataset, its frames decoded) whose `cameras` (indices) record
+    their pictures through a lens of their own, darker by 1 - amount s (s: stg_train.lens.radial_grid),
+    as 8-bit frames: a rig whose lenses differ."""
+    from .data.dataset import Dataset
+
+    frames = np.stack([[dataset.image(c, f) for f in range(dataset.num_frames)] for c in range(len(dataset.cameras))])
+    for c in cameras:
+        frames[c] *= (1.0 - amount * radial_grid(dataset.cameras[c]))[None, ..., None]
+    return Dataset(dataset.cameras, np.clip(frames * 255 + 0.5, 0, 255).astype(np.uint8), dataset.fps,
+                   test_cameras=dataset.test_cameras)

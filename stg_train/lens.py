@@ -1,8 +1,9 @@
 """A lens's radial brightness falloff (vignetting), `1 + k1 s + k2 s^2` with s the squared distance from
 the principal point over its value at the farthest image corner (appearance.radial): the polynomial
 once, for the falloff the cameras learn (stg_train.appearance) and the one given as known
-(TrainConfig.lens_falloff, `stg-train --lens-falloff`), and the range a known one must keep. Imports
-nothing, so the command line checks a falloff before torch loads."""
+(TrainConfig.lens_falloff, `stg-train --lens-falloff`), s over a picture's pixels (`radial_grid`), and
+the range a known one must keep. Imports nothing at load (numpy only inside radial_grid), so the
+command line checks a falloff before torch loads."""
 from __future__ import annotations
 
 import math
@@ -19,6 +20,17 @@ def corner_r2(camera) -> float:
     the value at which s = r^2 / corner_r2 reaches 1 (a stg_runtime Camera, or anything with cx, cy,
     width and height)."""
     return max((x - camera.cx) ** 2 + (y - camera.cy) ** 2 for x in (0, camera.width) for y in (0, camera.height))
+
+
+def radial_grid(camera, shape: tuple[int, int] | None = None):
+    """(h, w) float64 numpy array of s = r^2 / corner_r2 at the pixel centres (+0.5) of the camera's
+    picture resized to `shape` (h, w; default: the camera's own size), r measured in the camera's pixels."""
+    import numpy as np
+
+    h, w = (camera.height, camera.width) if shape is None else shape
+    u = (np.arange(w) + 0.5) * (camera.width / w) - camera.cx
+    v = (np.arange(h) + 0.5) * (camera.height / h) - camera.cy
+    return (u[None, :] ** 2 + v[:, None] ** 2) / corner_r2(camera)
 
 
 def known_falloff(k) -> tuple[float, float]:

@@ -39,7 +39,8 @@ from typing import Callable, NamedTuple
 import cv2
 import numpy as np
 
-from .lens import corner_r2, known_falloff, lens_brightness
+from .config import SAVED_BEFORE_AUTO
+from .lens import known_falloff, lens_brightness, radial_grid
 
 #: Flow pairs kept only where forward and backward flow agree to this many pixels (of the scaled image).
 FB_TOLERANCE = 0.3
@@ -132,7 +133,8 @@ def measure_rig(dataset, frames=None, neighbours: int = 4, rounds: int = 3, max_
     pictures = {(c, f): _scaled(dataset.image(c, f), scale) for c in cams for f in frames}
     # the colours compared, blurred once: a sub-pixel misalignment of the flow then matters less
     blurred = {key: cv2.GaussianBlur(p, (0, 0), 1.0) for key, p in pictures.items()}
-    radial = {c: _radial(dataset.cameras[c], pictures[c, frames[0]].shape[:2]) for c in cams}
+    shape = pictures[cams[0], frames[0]].shape[:2]
+    radial = {c: radial_grid(dataset.cameras[c], shape).astype(np.float32) for c in cams}
     pairs = _neighbour_pairs(dataset, cams, neighbours)
     rng = np.random.default_rng(seed)
     logv, gains, total = np.zeros(2), np.zeros((len(cams), 3)), 0
@@ -181,8 +183,8 @@ class RigCalibration(NamedTuple):
     notes: tuple[str, ...]
 
 
-#: The TrainConfig fields that may be "auto": decided by calibrate_rig.
-AUTO_FIELDS = ("lens_falloff", "appearance", "pose_refine")
+#: The TrainConfig fields that may be "auto" (those whose default became "auto"): decided by calibrate_rig.
+AUTO_FIELDS = tuple(SAVED_BEFORE_AUTO)
 
 
 def needs_calibration(config) -> bool:
@@ -262,15 +264,6 @@ def _scaled(image: np.ndarray, scale: float) -> np.ndarray:
         return image.astype(np.float32)
     h, w = image.shape[:2]
     return cv2.resize(image, (max(1, round(w * scale)), max(1, round(h * scale))), interpolation=cv2.INTER_AREA)
-
-
-def _radial(camera, shape) -> np.ndarray:
-    """(h, w) s of each pixel centre of the camera's picture resized to `shape` (h, w)
-    (stg_train.appearance.radial at full size)."""
-    h, w = shape
-    u = (np.arange(w) + 0.5) * (camera.width / w) - camera.cx
-    v = (np.arange(h) + 0.5) * (camera.height / h) - camera.cy
-    return ((u[None, :] ** 2 + v[:, None] ** 2) / corner_r2(camera)).astype(np.float32)
 
 
 def _neighbour_pairs(dataset, cams: list, neighbours: int) -> list[tuple[int, int]]:

@@ -8,11 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from stg_train.capture import CaptureModel
+from stg_train.capture import CaptureModel, with_vignetting
 from stg_train.config import TrainConfig
 from stg_train.data import load_n3v
 from stg_train.data.dataset import Dataset
-from stg_train.lens import corner_r2
 from stg_train.rotations import rotation_from_axis_angle
 from stg_train.self_calibration import EPIPOLAR, GAIN_SPREAD, _epipolar_distances, _Match, calibrate_rig, measure_rig
 from stg_train.synthetic import SyntheticScene, write_n3v
@@ -105,19 +104,8 @@ def test_the_epipolar_distance_is_zero_for_true_matches_and_grows_with_a_pose_er
     assert 0.03 < off < 0.3, off  # at most 0.15 degrees x the focal length (0.25 px), along the lines' normal
 
 
-def _vignetted(dataset, cameras, amount=0.3):
-    """The dataset with `cameras` (indices) vignetted by 1 - amount s."""
-    frames = np.stack([[dataset.image(c, f) for f in range(dataset.num_frames)] for c in range(len(dataset.cameras))])
-    for c in cameras:
-        cam = dataset.cameras[c]
-        u, v = np.arange(cam.width) + 0.5 - cam.cx, np.arange(cam.height) + 0.5 - cam.cy
-        frames[c] *= (1 - amount * (u[None] ** 2 + v[:, None] ** 2) / corner_r2(cam))[None, ..., None]
-    return Dataset(dataset.cameras, np.clip(frames * 255 + 0.5, 0, 255).astype(np.uint8), dataset.fps,
-                   test_cameras=dataset.test_cameras)
-
-
 def test_lenses_that_differ_are_told_apart_and_no_shared_falloff_is_trained(clean):
-    mixed = _vignetted(clean, [c for c in clean.train_cameras if c % 2])  # every other lens vignettes 30 %
+    mixed = with_vignetting(clean, [c for c in clean.train_cameras if c % 2])  # every other lens vignettes 30 %
     estimate = measure_rig(mixed)
     corners = dict(zip(mixed.train_cameras, estimate.camera_corners))
     assert all(abs(corners[c] - (0.7 if c % 2 else 1.0)) < 0.05 for c in corners), corners
