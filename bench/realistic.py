@@ -41,8 +41,9 @@ import stg_train  # noqa: F401  (first: it configures OpenMP before torch loads)
 import numpy as np
 import torch
 
-from stg_train.capture import CaptureModel, capture_record, pose_errors
+from stg_train.capture import CaptureModel, capture_record, in_model_frame, pose_errors
 from stg_train.data import load_n3v
+from stg_train.data.bounds import typical_depth
 from stg_train.data.dataset import Dataset
 from stg_train.metrics import evaluate_images
 from stg_train.pipeline import DEMO_SCENE
@@ -103,6 +104,21 @@ def heldout_truth(clean: Dataset, record: dict | None) -> Dataset:
     return Dataset([cam], frames, clean.fps, test_cameras=[0])
 
 
+def in_frame(views: dict[str, Dataset], trainer: Trainer, data: Dataset, record: dict | None) -> dict[str, Dataset]:
+    """`views` (posed in the true world) moved into the trained model's frame (capture.in_model_frame):
+    its training cameras as it holds them (stated, or refined) against their truth (the capture record's;
+    a clean capture's stated poses are the truth), in their pictures at the scene's depth
+    (data.bounds.typical_depth)."""
+    truth = {c.name: np.asarray(c.world_to_camera) for c in data.cameras} if record is None else \
+        {c["name"]: np.asarray(c["true_world_to_camera"]) for c in record["cameras"]}
+    held = trainer.refined_cameras()
+    model = np.stack([held[i].world_to_camera for i in data.train_cameras])
+    true = np.stack([truth[data.cameras[i].name] for i in data.train_cameras])
+    depth = typical_depth(data.bounds[data.train_cameras])
+    return {name: Dataset(in_model_frame(ds.cameras, model, true, depth), ds.frames, ds.fps, test_cameras=ds.test_cameras)
+            for name, ds in views.items()}
+
+
 def score(trainer: Trainer, views: dict[str, Dataset]) -> dict:
     """{view: (psnr, aligned_psnr)} of the trainer's canonical renders (no appearance) against `views`."""
     out = {}
@@ -131,6 +147,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--data", default=None, help="folder for the captures (written once; default: a temp folder)")
     ap.add_argument("--json", default=None, help="also write the results as JSON here")
+    ap.add_argument("--checkpoints", default=None, help="also save each trained model's checkpoint in this folder")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     os.environ.setdefault("NUMBA_NUM_THREADS", str(args.threads))
@@ -160,8 +177,13 @@ def main() -> None:
                 start = time.perf_counter()
                 trainer = Trainer(data, config)
                 trainer.train(progress=False)
+                if args.checkpoints:
+                    Path(args.checkpoints).mkdir(parents=True, exist_ok=True)
+                    trainer.save_checkpoint(Path(args.checkpoints) / f"{seed}-{capture_name}-{variant}.pt")
                 row = {"seed": seed, "capture": capture_name, "variant": variant, "seconds": time.perf_counter() - start,
-                       "gaussians": trainer.params.count, "views": score(trainer, views)}
+                       "gaussians": trainer.params.count, "views": score(trainer, views),
+                       "views_in_frame": score(trainer, in_frame(views, trainer, data,
+                                                                 record if capture_name == "realistic" else None))}
                 if trainer.calibration is not None and trainer.calibration.estimate is not None:
                     row["measured_falloff"] = list(trainer.calibration.estimate.k)
                     row["chosen"] = {k: getattr(trainer.config, k) for k in ("lens_falloff", "appearance", "pose_refine")}
@@ -175,7 +197,7 @@ def main() -> None:
                                          float(state["translation"].norm(dim=1).mean() * state["scale"]))
                 if capture_name == "realistic":
                     for key, cams in (("pose_stated", data.cameras), ("pose_refined", trainer.refined_cameras())):
-                        e = pose_errors(cams, record, names)
+                        e = pose_errors(cams, record, names, typical_depth(data.bounds[data.train_cameras]))
                         row[key] = (e["rotation_deg"], e["translation"], e.get("aligned_rotation_deg"),
                                     e.get("aligned_translation"))
                 results.append(row)
@@ -193,7 +215,11 @@ def main() -> None:
                               f"appearance {row['chosen']['appearance']}, pose refinement {row['chosen']['pose_refine']}")
                 print(f"seed {seed} {capture_name:9s} {variant:10s} {figures}{pose}{extra}  ({row['gaussians']} Gaussians, "
                       f"{row['seconds']:.0f} s)", flush=True)
-    print("\nraw / colour-aligned PSNR against the clean lossless frames (held-out camera at its true pose)")
+                figures = "  ".join(f"{v}: {p:.2f} / {a:.2f} dB" for v, (p, a) in row["views_in_frame"].items())
+                print(f"{'':31s}in the model's frame: {figures}", flush=True)
+    print("\nraw / colour-aligned PSNR against the clean lossless frames (held-out camera at its true pose; in the "
+          "model's frame: every view moved by the similarity of the world that best takes the true training poses "
+          "to the model's)")
     if args.json:
         Path(args.json).write_text(json.dumps({"settings": {**vars(args), "set": settings}, "results": results},
                                               indent=1, default=str) + "\n")

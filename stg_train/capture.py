@@ -17,6 +17,8 @@ The pose error is a rotation of `rotation_deg` degrees about a random axis and a
 `translation` world units in a random direction, applied to the camera's world-to-camera transform.
 
 `with_vignetting` gives a dataset some lenses of their own (a rig whose lenses differ).
+`in_model_frame` places a camera known in the true world where a model trained on the perturbed poses
+sees it (pictures fix a model only up to a similarity of the world: stg_train.gauge).
 """
 from __future__ import annotations
 
@@ -26,7 +28,7 @@ import numpy as np
 
 from stg_runtime.camera import Camera
 
-from .gauge import corrections_between, gauge_part
+from .gauge import corrections_between, fit_similarity
 from .lens import radial_grid
 from .rotations import rotation_from_axis_angle
 
@@ -157,13 +159,15 @@ def pose_error(camera: Camera, true_world_to_camera) -> tuple[float, float]:
     return float(angle), float(np.linalg.norm(centre - true_centre))
 
 
-def pose_errors(cameras, record: dict, names=None) -> dict:
+def pose_errors(cameras, record: dict, names=None, depth: float | None = None) -> dict:
     """Pose errors of `cameras` against a capture record's truth (capture_record), matched by name, over
     the cameras named in `names` (default: all that the record has): "rotation_deg" and "translation"
     (means over those cameras), "max_rotation_deg", "max_translation", "cameras" (name -> (degrees,
     distance)); with three cameras or more also "aligned_rotation_deg" and "aligned_translation": the
     means once the part of the errors that moves the whole rig alike (a similarity of the world, which
-    pictures cannot reveal: stg_train.gauge) is removed, to first order."""
+    pictures cannot reveal: stg_train.gauge) is removed, to first order, the similarity fitted in the
+    pictures of points at `depth` (world units, the scene's: data.bounds.typical_depth; default the
+    rig's radius, which lets the cameras' shifts decide the rig's turn: gauge.fit_similarity)."""
     truth = {c["name"]: c["true_world_to_camera"] for c in record["cameras"]}
     chosen = [c for c in cameras if c.name in truth and (names is None or c.name in names)]
     if not chosen:
@@ -176,9 +180,31 @@ def pose_errors(cameras, record: dict, names=None) -> dict:
     if len(chosen) >= 3:
         reference = np.stack([np.asarray(truth[c.name], np.float64) for c in chosen])
         w, t = corrections_between(np.stack([np.asarray(c.world_to_camera, np.float64) for c in chosen]), reference)
-        gw, gt = gauge_part(reference, w, t)
+        gw, gt = fit_similarity(reference, w, t, depth).corrections(reference)
         out["aligned_rotation_deg"] = float(np.degrees(np.linalg.norm(w - gw, axis=1)).mean())
         out["aligned_translation"] = float(np.linalg.norm(t - gt, axis=1).mean())
+    return out
+
+
+def in_model_frame(cameras, model_poses: np.ndarray, true_poses: np.ndarray, depth: float) -> list[Camera]:
+    """`cameras` (posed in the true world) moved into the frame of a model whose training cameras it
+    holds at model_poses (K, 4, 4, world_to_camera: stated, or refined) where the truth is true_poses
+    (K, 4, 4): each moved by the similarity of the world that best takes the true training poses to the
+    model's in their pictures of points at `depth` (world units; gauge.fit_similarity, first order).
+    Pictures place a model only up to such a similarity, so a view posed in the truth's frame is compared
+    with the model in the model's own frame this way, as pose-refining methods are evaluated (BARF aligns
+    its poses to the truth likewise)."""
+    model_poses = np.asarray(model_poses, np.float64)
+    true_poses = np.asarray(true_poses, np.float64)
+    rotation, translation = corrections_between(model_poses, true_poses)
+    similarity = fit_similarity(true_poses, rotation, translation, depth)
+    poses = np.stack([np.asarray(c.world_to_camera, np.float64) for c in cameras])
+    turns, moves = similarity.corrections(poses)
+    out = []
+    for camera, pose, w, t in zip(cameras, poses, turns, moves):
+        delta = np.eye(4)
+        delta[:3, :3], delta[:3, 3] = rotation_from_axis_angle(w), t
+        out.append(replace(camera, world_to_camera=delta @ pose))
     return out
 
 

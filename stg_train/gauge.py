@@ -13,22 +13,52 @@ sigma (C_c - m) + tau.
 """
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from .rotations import cross_matrix, rotation_vector
 
 
-def gauge_part(world_to_camera: np.ndarray, rotation: np.ndarray,
-               translation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The part of small pose corrections that is a similarity of the whole world (module docstring):
-    (rotation (K, 3), translation (K, 3)) to subtract from the corrections rotation (K, 3) axis-angle
-    radians and translation (K, 3) world units, both in camera coordinates, of K cameras with stated
-    world_to_camera (K, 4, 4). Least squares over the K cameras, first order in the corrections."""
+class Similarity(NamedTuple):
+    """A small similarity of the world, to first order (module docstring): turn omega (3,) axis-angle
+    radians and relative scale sigma, both about `about` (3,) world units, then shift tau (3,)."""
+
+    omega: np.ndarray
+    sigma: float
+    tau: np.ndarray
+    about: np.ndarray
+
+    def corrections(self, world_to_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(rotation (K, 3), translation (K, 3)): the corrections D_c, in camera coordinates, that move
+        cameras with world_to_camera (K, 4, 4) by this similarity (any cameras, not only those it was
+        fitted on)."""
+        r = world_to_camera[:, :3, :3]
+        d = _centres(world_to_camera) - self.about
+        move = np.cross(self.omega, d) + self.sigma * d + self.tau
+        # back to camera coordinates: w_c = -R_c a_c, t_c = -R_c dC_c
+        return -np.einsum("kij,j->ki", r, self.omega), -np.einsum("kij,kj->ki", r, move)
+
+
+def _centres(world_to_camera: np.ndarray) -> np.ndarray:
+    """(K, 3) camera centres of world_to_camera (K, 4, 4)."""
+    return -np.einsum("kji,kj->ki", world_to_camera[:, :3, :3], world_to_camera[:, :3, 3])
+
+
+def fit_similarity(world_to_camera: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
+                   depth: float | None = None) -> Similarity:
+    """The similarity of the world whose motion of the cameras best matches small pose corrections
+    rotation (K, 3) axis-angle radians and translation (K, 3) world units, in camera coordinates, of K
+    cameras with stated world_to_camera (K, 4, 4): least squares over the K cameras, first order in the
+    corrections, about the cameras' mean centre. The turns are weighted by a length so that both terms
+    are lengths: `depth` (world units) when given, which measures a turn by how far it moves the
+    pictures of points at that depth (a turn of a camera moves them by depth times its angle, a shift by
+    its length); else the rig's radius."""
     r = world_to_camera[:, :3, :3]
-    centres = -np.einsum("kji,kj->ki", r, world_to_camera[:, :3, 3])
+    centres = _centres(world_to_camera)
     d = centres - centres.mean(0)
     radius = float(np.sqrt((d * d).sum(1).mean()))
-    weight = radius if radius > 1e-9 else 1.0
+    weight = depth if depth is not None else radius if radius > 1e-9 else 1.0
     turn = -np.einsum("kji,kj->ki", r, rotation)      # a_c = -R_c^T w_c
     move = -np.einsum("kji,kj->ki", r, translation)   # dC_c = -R_c^T t_c
     rows, rhs = [], []
@@ -38,13 +68,19 @@ def gauge_part(world_to_camera: np.ndarray, rotation: np.ndarray,
         rows.append(np.hstack([-cross_matrix(d[k]), d[k][:, None], np.eye(3)]))
         rhs.append(move[k])
     x = np.linalg.lstsq(np.vstack(rows), np.concatenate(rhs), rcond=None)[0]
-    omega, sigma, tau = x[:3], x[3], x[4:]
-    gauge_move = np.cross(omega, d) + sigma * d + tau
-    # back to camera coordinates: w_c = -R_c a_c, t_c = -R_c dC_c
-    return -np.einsum("kij,j->ki", r, omega), -np.einsum("kij,kj->ki", r, gauge_move)
+    return Similarity(x[:3], float(x[3]), x[4:], centres.mean(0))
 
 
-def gauge_projector(world_to_camera: np.ndarray) -> np.ndarray:
+def gauge_part(world_to_camera: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
+               depth: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The part of small pose corrections that is a similarity of the whole world (module docstring):
+    (rotation (K, 3), translation (K, 3)) to subtract from the corrections rotation (K, 3) axis-angle
+    radians and translation (K, 3) world units, both in camera coordinates, of K cameras with stated
+    world_to_camera (K, 4, 4) (fit_similarity, with its `depth`)."""
+    return fit_similarity(world_to_camera, rotation, translation, depth).corrections(world_to_camera)
+
+
+def gauge_projector(world_to_camera: np.ndarray, depth: float | None = None) -> np.ndarray:
     """(6K, 6K) matrix P of `gauge_part` for K cameras with stated world_to_camera (K, 4, 4): with
     x = concat(rotation.ravel(), translation.ravel()) (rotation, translation (K, 3) as there), P @ x is
     the gauge part in the same layout. gauge_part is linear in the corrections, so P is built from it
@@ -52,7 +88,7 @@ def gauge_projector(world_to_camera: np.ndarray) -> np.ndarray:
     k = len(world_to_camera)
     basis = np.eye(6 * k)
     columns = [np.concatenate([part.ravel() for part in gauge_part(world_to_camera, e[:3 * k].reshape(k, 3),
-                                                                  e[3 * k:].reshape(k, 3))]) for e in basis]
+                                                                  e[3 * k:].reshape(k, 3), depth)]) for e in basis]
     return np.stack(columns, axis=1)
 
 

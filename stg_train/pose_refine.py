@@ -73,14 +73,16 @@ class PoseCorrections:
     the translation's parameter unit in world units (the scene extent), so one learning rate fits any
     scene."""
 
-    def __init__(self, train_cameras, cameras: list[Camera], device, scale: float = 1.0):
+    def __init__(self, train_cameras, cameras: list[Camera], device, scale: float = 1.0, depth: float | None = None):
         """cameras: the dataset's stated cameras (indexed like it), whose poses `center` needs to find
-        the gauge in world coordinates."""
+        the gauge in world coordinates; depth: the scene's depth from them (world units,
+        data.bounds.typical_depth), at which the gauge is measured in their pictures
+        (gauge.fit_similarity; None: the rig's radius)."""
         self.train_cameras = [int(c) for c in train_cameras]
         self.device = torch.device(device)
         self.scale = float(scale)
         stated = np.stack([np.asarray(cameras[c].world_to_camera, np.float64) for c in self.train_cameras])
-        self._projector = gauge_projector(stated) if self.train_cameras else None
+        self._projector = gauge_projector(stated, depth) if self.train_cameras else None
         self._gauge = self._scaled_gauge()
         self.rotation = {c: torch.zeros(3, device=self.device, requires_grad=True) for c in self.train_cameras}
         self.translation = {c: torch.zeros(3, device=self.device, requires_grad=True) for c in self.train_cameras}

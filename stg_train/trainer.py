@@ -29,6 +29,7 @@ from stg_runtime.progress import Progress
 
 from .appearance import CameraAppearance, radial
 from .lens import known_falloff, lens_brightness
+from .data.bounds import typical_depth
 from .data.flow import initial_velocity
 from .config import MOTION_INITS, TrainConfig  # noqa: F401 (TrainConfig's home is config; re-exported)
 from .data.points import InitialPoints, initial_points
@@ -186,7 +187,8 @@ class Trainer:
                                                cfg.appearance_vignetting and cfg.lens_falloff is None)
             groups += self.appearance.param_groups(cfg.camera_learning_rates)
         if cfg.pose_refine:
-            self.poses = PoseCorrections(ds.train_cameras, ds.cameras, self.device, scale=self.extent)
+            depth = None if ds.bounds is None else typical_depth(ds.bounds[ds.train_cameras])
+            self.poses = PoseCorrections(ds.train_cameras, ds.cameras, self.device, scale=self.extent, depth=depth)
             groups += self.poses.param_groups(cfg.camera_learning_rates)
         if groups:
             for group in groups:

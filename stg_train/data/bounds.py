@@ -72,6 +72,15 @@ def uniform_bounds(num_cameras: int, near: float, far: float) -> np.ndarray:
     return np.tile(np.array([near, far], dtype=np.float64), (num_cameras, 1))
 
 
+def typical_depth(bounds: np.ndarray | None) -> float | None:
+    """The depth at which cameras with near and far bounds (C, 2) see their scene, world units: the
+    median over the cameras of the geometric mean of near and far (where a point's picture moves as much
+    under a camera's turn by an angle as under a shift of depth x that angle); None without bounds."""
+    if bounds is None or len(bounds) == 0:
+        return None
+    return float(np.median(np.sqrt(np.prod(np.asarray(bounds, np.float64), axis=1))))
+
+
 def describe(bounds: np.ndarray, source: str) -> str:
     """One line: where the bounds come from and their ranges over the cameras."""
     near, far = np.asarray(bounds)[:, 0], np.asarray(bounds)[:, 1]

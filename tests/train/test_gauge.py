@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from stg_runtime.camera import Camera
-from stg_train.capture import pose_errors
+from stg_train.capture import in_model_frame, pose_errors
 from stg_train.gauge import corrections_between, gauge_part, gauge_projector
 from stg_train.rotations import rotation_from_axis_angle, rotation_vector
 
@@ -90,6 +90,43 @@ def test_pose_errors_with_the_gauge_removed():
                          [np.zeros((1, 3)), np.ones((1, 1))]]) @ wrong[3]
     aligned = pose_errors(cams(wrong), record)
     assert aligned["aligned_rotation_deg"] == pytest.approx(2 * 0.5 * 8 / 81, abs=0.01)
+
+
+def test_the_scene_s_depth_keeps_shifts_from_passing_for_a_turn_of_the_rig():
+    """Cameras shifted by 1 cm each, none turned: measured by the rig's radius (1.0 here) the shifts look
+    like a turn of the whole rig, which removing the similarity then hands to every camera; measured in
+    pictures of points 3 units away (the scene's depth) they do not."""
+    rig = _rig()
+    names = [f"c{i}" for i in range(len(rig))]
+    record = {"cameras": [{"name": n, "true_world_to_camera": w.tolist()} for n, w in zip(names, rig)]}
+    shifted = rig.copy()
+    shifted[:, :3, 3] += np.random.default_rng(4).normal(0, 0.01, (len(rig), 3))
+    cams = [Camera(50, 50, 32, 24, 64, 48, w, name=n) for n, w in zip(names, shifted)]
+    by_radius, by_depth = pose_errors(cams, record), pose_errors(cams, record, depth=3.0)
+    assert by_radius["rotation_deg"] < 1e-5
+    assert by_radius["aligned_rotation_deg"] > 0.04 and by_depth["aligned_rotation_deg"] < 0.015
+
+
+def test_a_camera_in_the_true_world_moves_into_the_model_s_frame():
+    """A model trained on a rig that a similarity of the world moved sees an unseen camera where the same
+    similarity moves it (to second order); each camera's own small error moves it only a little."""
+    rig = _rig(10)
+    moved = _moved_by_similarity(rig, np.radians(0.25) * np.array([0.2, 0.9, -0.4]), 1.006, [0.015, -0.01, 0.02])
+    unseen = Camera(50, 50, 32, 24, 64, 48, rig[9], name="held-out")
+
+    def off(placed):  # (degrees, distance) of a placed camera from the moved truth
+        w, t = corrections_between(np.asarray(placed.world_to_camera)[None], moved[9][None])
+        return np.degrees(np.linalg.norm(w)), np.linalg.norm(t)
+
+    assert off(unseen)[0] > 0.2 and off(unseen)[1] > 0.015
+    np.testing.assert_allclose(in_model_frame([unseen], rig[:9], rig[:9], 3.0)[0].world_to_camera, rig[9], atol=1e-12)
+    degrees, distance = off(in_model_frame([unseen], moved[:9], rig[:9], 3.0)[0])
+    assert degrees < 1e-3 and distance < 1e-4
+    rng = np.random.default_rng(3)
+    own = np.array([np.block([[rotation_from_axis_angle(rng.normal(0, 5e-4, 3)), rng.normal(0, 2e-3, (3, 1))],
+                              [np.zeros((1, 3)), np.ones((1, 1))]]) @ w for w in moved[:9]])
+    degrees, distance = off(in_model_frame([unseen], own, rig[:9], 3.0)[0])
+    assert degrees < 0.25 * off(unseen)[0] and distance < 0.25 * off(unseen)[1]
 
 
 def test_the_projector_is_gauge_part_as_one_matrix():
