@@ -55,11 +55,12 @@ class CaptureModel:
     seed: int = 0
     reference_camera: int = -1
 
-    def draw(self, num_cameras: int) -> list["CameraEffects"]:
+    def draw(self, num_cameras: int, held_out=()) -> list["CameraEffects"]:
         """One CameraEffects per camera, from `seed`. Without a reference camera the exposures and the
-        white balances are divided by their means over the cameras: only colours relative to the
-        rig's mean can be recovered from its pictures (a factor shared by every camera belongs to the
-        scene), so the clean capture is the rig's mean response."""
+        white balances are divided by their means over the cameras trained on (all but the indices
+        `held_out`): only colours relative to their mean can be recovered from their pictures (a factor
+        shared by every camera belongs to the scene, and a held-out camera's pictures are not seen), so
+        the clean capture is their mean response."""
         rng = np.random.default_rng(self.seed)
         gains, balances, axes, directions = [], [], [], []
         for _ in range(num_cameras):
@@ -70,7 +71,8 @@ class CaptureModel:
             directions.append(rng.normal(size=3))
         gains, balances = np.asarray(gains), np.asarray(balances)
         if self.reference_camera < 0:
-            gains, balances = gains / gains.mean(), balances / balances.mean(0)
+            trained = [c for c in range(num_cameras) if c not in set(held_out)] or list(range(num_cameras))
+            gains, balances = gains / gains[trained].mean(), balances / balances[trained].mean(0)
         effects = []
         for ci in range(num_cameras):
             exact = ci == self.reference_camera

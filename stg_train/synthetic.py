@@ -616,7 +616,7 @@ def write_n3v(out_dir, scene: SyntheticScene, num_cameras: int = 12, num_frames:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     cams = scene.cameras(num_cameras, width, height, focal=focal)
-    effects = capture.draw(num_cameras) if capture is not None else [None] * num_cameras
+    effects = capture.draw(num_cameras, held_out=[0]) if capture is not None else [None] * num_cameras  # cam00
     _remove_layout_files(out)
     poses = np.zeros((num_cameras, 17))
     tick = _ticker(num_cameras * num_frames, progress)

@@ -52,12 +52,18 @@ def test_the_pose_error_has_the_stated_size():
         assert np.linalg.norm(wrong.center - cam.center) == pytest.approx(0.02, abs=1e-9)
 
 
-def test_the_rig_s_mean_exposure_and_white_balance_are_one():
+def test_the_mean_exposure_and_white_balance_of_the_cameras_trained_on_are_one():
     effects = CaptureModel(gain=0.4, white_balance=0.1, seed=4).draw(7)
     gains = np.array([e.gain for e in effects])
     balances = np.array([e.white_balance for e in effects])
     assert gains.mean() == pytest.approx(1.0) and np.std(np.log2(gains)) > 0.1  # spread kept, mean divided out
     np.testing.assert_allclose(balances.mean(0), 1.0)
+    # a held-out camera's pictures are not trained on: the mean is over the others (the same draw)
+    trained = CaptureModel(gain=0.4, white_balance=0.1, seed=4).draw(7, held_out=[0])
+    kept = np.array([e.gain for e in trained])
+    assert kept[1:].mean() == pytest.approx(1.0) and abs(kept[0] - 1.0) > 0.05
+    np.testing.assert_allclose(kept / gains, kept[0] / gains[0])
+    np.testing.assert_allclose(np.mean([e.white_balance for e in trained[1:]], axis=0), 1.0)
     # with a reference camera, that camera is the truth and nothing is divided
     referenced = CaptureModel(gain=0.4, white_balance=0.1, seed=4, reference_camera=2).draw(7)
     first_draw = 2.0 ** np.random.default_rng(4).normal(0, 0.4)
