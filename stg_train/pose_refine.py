@@ -30,9 +30,10 @@ from stg_runtime.camera import Camera
 from .gauge import gauge_projector
 
 #: Adam learning rates of the pose corrections (per step; decayed with the run, see Trainer): rotation in
-#: radians, translation in units of the scene extent (params.extent_of). gsplat's pose_opt_lr; at 1e-4
-#: the corrections drifted with the scene and cost a novel view 2.4 dB on a clean capture
-#: (docs/training.md, "Real captures").
+#: radians, translation in units of the scene's depth (PoseCorrections' `scale`: data.bounds.typical_depth,
+#: else params.extent_of), so that both move the pictures alike. gsplat's pose_opt_lr; at 1e-4 the
+#: corrections drifted with the scene and cost a novel view 2.4 dB on a clean capture (docs/training.md,
+#: "Real captures").
 POSE_LR = {"rotation": 1e-5, "translation": 1e-5}
 
 
@@ -70,8 +71,8 @@ def correction(rotation: Tensor, translation: Tensor) -> Tensor:
 
 class PoseCorrections:
     """Learned pose corrections (w_c, t_c) of the cameras `train_cameras` (dataset indices); `scale`:
-    the translation's parameter unit in world units (the scene extent), so one learning rate fits any
-    scene."""
+    the translation's parameter unit in world units (the scene's depth from the cameras, where a shift by
+    it moves the pictures as much as a turn by a radian), so one learning rate fits any scene."""
 
     def __init__(self, train_cameras, cameras: list[Camera], device, scale: float = 1.0, depth: float | None = None):
         """cameras: the dataset's stated cameras (indexed like it), whose poses `center` needs to find

@@ -188,7 +188,8 @@ class Trainer:
             groups += self.appearance.param_groups(cfg.camera_learning_rates)
         if cfg.pose_refine:
             depth = None if ds.bounds is None else typical_depth(ds.bounds[ds.train_cameras])
-            self.poses = PoseCorrections(ds.train_cameras, ds.cameras, self.device, scale=self.extent, depth=depth)
+            self.poses = PoseCorrections(ds.train_cameras, ds.cameras, self.device, depth=depth,
+                                         scale=self.extent if depth is None else depth)
             groups += self.poses.param_groups(cfg.camera_learning_rates)
         if groups:
             for group in groups:
