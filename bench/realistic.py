@@ -5,13 +5,14 @@ stg_train.capture.CaptureModel, what `stg-synth --realistic` writes), trained wi
 per-camera appearance (TrainConfig.appearance) and pose refinement (TrainConfig.pose_refine), and scored
 against the CLEAN lossless frames: raw and colour-aligned PSNR (stg_train.metrics, one affine colour map
 per camera) on the held-out camera, rendered at its TRUE pose (scene.json), and on two novel views
-inside the rig (ray traced); plus the training cameras' pose error against the truth, as stated and as
-refined.
+inside the rig (ray traced); the same views again moved into the model's frame (capture.in_model_frame:
+pictures fix a model only up to a similarity of the world, and the stated poses' frame is not the
+truth's); plus the training cameras' pose error against the truth, as stated and as refined.
 
     python bench/realistic.py [--iterations N] [--points N] [--seeds 0,1] [--variants plain,appearance,...]
                               [--captures clean,realistic] [--cameras C] [--frames F] [--width W]
                               [--height H] [--set KEY=VALUE ...] [--capture KEY=VALUE ...] [--threads 2]
-                              [--data DIR] [--json PATH]
+                              [--data DIR] [--json PATH] [--checkpoints DIR]
 
 Variants: default (TrainConfig's defaults: the falloff, the appearance and the pose refinement "auto",
 decided from the rig's measurement, stg_train.self_calibration.calibrate_rig), plain (none of the
