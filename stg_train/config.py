@@ -60,7 +60,8 @@ class TrainConfig:
     players crossfade over the seam where both neighbours have context; stg_train.segments);
     edge_weight: how often the first and last frames a run shows (trainer.EDGE_FRAMES at each end: the
     video's ends, and a segment's frames next to a seam) are drawn for a training step, relative to the
-    others (ours; the reference draws every frame alike, 1).
+    others, a video's own first and last frame trainer.END_FRAME_FACTOR times that (ours; the reference
+    draws every frame alike, 1).
     docs/training.md says which defaults are the reference's and which are ours, with the measurements behind them.
     """
 

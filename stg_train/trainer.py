@@ -74,17 +74,26 @@ def shown_frames(dataset):
 
 #: How many frames at each end of the shown frames (trainer.frame_weights) TrainConfig.edge_weight applies to.
 EDGE_FRAMES = 3
+#: A video's own first and last frames are drawn this many times as often again as the other edge frames
+#: (trainer.frame_weights): a video's end has no neighbour to borrow from, and its end frame alone
+#: carries the loss (docs/training.md, "Seams").
+END_FRAME_FACTOR = 2
 
 
 def frame_weights(num_frames: int, context: tuple[int, int], edge_weight: float) -> np.ndarray | None:
     """(num_frames,) probabilities of drawing each frame of a dataset whose first and last `context`
     frames are context (Trainer.sample_frame): the EDGE_FRAMES first and last frames it shows (a video's
     ends, or a segment's frames next to a seam, its context frames beyond them) `edge_weight` times as
-    often as the others; None when they are all equal."""
+    often as the others, and where edge_weight is over 1, a shown end frame with no context beyond it
+    (a video's first or last frame) END_FRAME_FACTOR times that; None when they are all equal."""
     p = np.ones(num_frames)
     before, after = context
     p[before:before + EDGE_FRAMES] = edge_weight
     p[max(before, num_frames - after - EDGE_FRAMES):num_frames - after] = edge_weight
+    if edge_weight > 1 and before == 0:
+        p[0] *= END_FRAME_FACTOR
+    if edge_weight > 1 and after == 0:
+        p[-1] *= END_FRAME_FACTOR
     return None if np.all(p == p[0]) else p / p.sum()
 
 

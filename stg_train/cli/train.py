@@ -47,8 +47,8 @@ view-volume initial points (--init; the reference uses SfM), initial motion from
 reference's are set for 30000 steps), guided sampling at the error patch's median depth after one
 poor view (the reference: the view's maximum depth, two views), pruning applied at densification,
 scale learning rate 0.005 (the reference's N3V configurations: 0.003), no rotation/motion separation,
-each segment's first and last 3 frames drawn three times as often (--edge-weight; the reference draws
-every frame alike).
+each segment's first and last 3 frames drawn three times as often and the video's own first and last
+frames six times (--edge-weight; the reference draws every frame alike).
 Exit codes: 0 done, 2 bad data or arguments."""
 
 
@@ -143,9 +143,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "as before; default %(default)s; docs/training.md, \"Seams\")")
     p.add_argument("--edge-weight", type=_edge_weight, default=d.edge_weight, metavar="W",
                    help="draw each segment's first and last frames (3 at each end: the video's ends and the "
-                        "frames next to a seam) W times as often as the others for a training step: a segment's "
-                        "ends are otherwise its weakest frames (1: every frame alike, as the reference; default "
-                        "%(default)s; docs/training.md, \"Seams\")")
+                        "frames next to a seam) W times as often as the others for a training step, and the "
+                        "video's own first and last frames twice that: a segment's ends are otherwise its "
+                        "weakest frames (1: every frame alike, as the reference; default %(default)s; "
+                        "docs/training.md, \"Seams\")")
     p.add_argument("--segments", type=_segment_list, default=None, metavar="LIST",
                    help="train only these segments, indices from 0: e.g. 2,3 or 0-2 (default: all); run "
                         "the others elsewhere, copy their OUT/segments/NN folders into OUT/segments, and "

@@ -301,7 +301,7 @@ def test_frame_range_with_context_and_the_chunks(dataset):
 
 
 def test_frame_weights_and_steps(dataset):
-    from stg_train.trainer import EDGE_FRAMES, frame_time, frame_weights, run_steps
+    from stg_train.trainer import EDGE_FRAMES, END_FRAME_FACTOR, frame_time, frame_weights, run_steps
 
     assert run_steps(100, dataset) == 100 and run_steps(100, dataset.frame_range(2, 4, context=(2, 2))) == 200
     # time counts over the shown frames: a segment's axis is the same with context or without
@@ -313,7 +313,10 @@ def test_frame_weights_and_steps(dataset):
     p = frame_weights(12, (2, 0), 3.0)  # the shown frames' ends drawn 3 times as often, the context's not
     assert p.sum() == pytest.approx(1.0)
     weight = p / p[6]
-    assert np.allclose(weight[-EDGE_FRAMES:], 3.0) and np.allclose(weight[2:2 + EDGE_FRAMES], 3.0)
+    # the video's last frame (no context after it) END_FRAME_FACTOR times that again; the first shown
+    # frame is next to a seam (context before it): no more than its edge neighbours
+    assert weight[-1] == pytest.approx(3.0 * END_FRAME_FACTOR) and np.allclose(weight[-EDGE_FRAMES:-1], 3.0)
+    assert np.allclose(weight[2:2 + EDGE_FRAMES], 3.0)
     assert np.allclose(weight[:2], 1.0) and np.allclose(weight[2 + EDGE_FRAMES:-EDGE_FRAMES], 1.0)
     weight = frame_weights(14, (4, 4), 3.0) / frame_weights(14, (4, 4), 3.0)[0]  # 6 shown frames, 3 at each end
     assert np.allclose(weight, [1] * 4 + [3] * 6 + [1] * 4)
@@ -324,8 +327,9 @@ def test_edge_weight_default_and_option():
     from stg_train.trainer import EDGE_FRAMES, TrainConfig, frame_weights
 
     assert TrainConfig().edge_weight == 3.0  # the video's ends drawn 3 times as often (docs/training.md, "Seams")
-    p = frame_weights(30, (0, 0), TrainConfig().edge_weight)
-    assert np.allclose(p[:EDGE_FRAMES] / p[15], 3.0) and np.allclose(p[-EDGE_FRAMES:] / p[15], 3.0)
+    p = frame_weights(30, (0, 0), TrainConfig().edge_weight) / frame_weights(30, (0, 0), TrainConfig().edge_weight)[15]
+    assert np.allclose(p[1:EDGE_FRAMES], 3.0) and np.allclose(p[-EDGE_FRAMES:-1], 3.0)
+    assert p[0] == p[-1] == pytest.approx(6.0)  # the video's own first and last frames twice that
     args = build_parser().parse_args(["data", "--out", "run", "--edge-weight", "2"])
     assert _config(args, "numba").edge_weight == 2.0
     assert _config(build_parser().parse_args(["data", "--out", "run", "--edge-weight", "1"]), "numba").edge_weight == 1.0
