@@ -124,11 +124,7 @@ class CameraEffects:
     def perturb(self, camera: Camera) -> Camera:
         """The camera as a slightly wrong calibration states it: world_to_camera premultiplied by the
         error rotation, then its translation moved by `translation` (the true camera stays as given)."""
-        w2c = np.array(camera.world_to_camera, dtype=np.float64)
-        error = np.eye(4)
-        error[:3, :3] = rotation_from_axis_angle(self.rotation)
-        error[:3, 3] = self.translation
-        return replace(camera, world_to_camera=error @ w2c)
+        return corrected(camera, self.rotation, self.translation)
 
     def as_dict(self) -> dict:
         return {"gain": self.gain, "white_balance": self.white_balance.tolist(), "vignetting": self.vignetting,
@@ -202,12 +198,16 @@ def in_model_frame(cameras, model_poses: np.ndarray, true_poses: np.ndarray, dep
     similarity = fit_similarity(true_poses, rotation, translation, depth)
     poses = np.stack([np.asarray(c.world_to_camera, np.float64) for c in cameras])
     turns, moves = similarity.corrections(poses)
-    out = []
-    for camera, pose, w, t in zip(cameras, poses, turns, moves):
-        delta = np.eye(4)
-        delta[:3, :3], delta[:3, 3] = rotation_from_axis_angle(w), t
-        out.append(replace(camera, world_to_camera=delta @ pose))
-    return out
+    return [corrected(camera, w, t) for camera, w, t in zip(cameras, turns, moves)]
+
+
+def corrected(camera: Camera, rotation, translation) -> Camera:
+    """The camera with world_to_camera D W: D the rigid correction in camera coordinates, the rotation
+    exp([rotation]x) (axis-angle (3,), radians) then the translation (3,) world units (stg_train.gauge's
+    convention)."""
+    delta = np.eye(4)
+    delta[:3, :3], delta[:3, 3] = rotation_from_axis_angle(rotation), translation
+    return replace(camera, world_to_camera=delta @ np.asarray(camera.world_to_camera, np.float64))
 
 
 def with_vignetting(dataset, cameras, amount: float = 0.3):

@@ -356,7 +356,6 @@ def _refined_cameras(trainer: Trainer, out: Path, quiet: bool) -> dict:
     from stg_runtime.camera import save_camera_path
 
     from .capture import capture_record, pose_errors
-    from .data.bounds import typical_depth
 
     cameras = trainer.refined_cameras()
     save_camera_path(out / REFINED_CAMERAS, cameras)
@@ -365,7 +364,7 @@ def _refined_cameras(trainer: Trainer, out: Path, quiet: bool) -> dict:
     if record is None:
         return {}
     names = [ds.cameras[i].name for i in ds.train_cameras]
-    depth = None if ds.bounds is None else typical_depth(ds.bounds[ds.train_cameras])
+    depth = trainer.poses.depth  # the scene's depth at which pose refinement measures the gauge
     stated, refined = pose_errors(ds.cameras, record, names, depth), pose_errors(cameras, record, names, depth)
     if not quiet:
         aligned = "" if "aligned_rotation_deg" not in stated else (

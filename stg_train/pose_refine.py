@@ -82,6 +82,7 @@ class PoseCorrections:
         self.train_cameras = [int(c) for c in train_cameras]
         self.device = torch.device(device)
         self.scale = float(scale)
+        self.depth = depth
         stated = np.stack([np.asarray(cameras[c].world_to_camera, np.float64) for c in self.train_cameras])
         self._projector = gauge_projector(stated, depth) if self.train_cameras else None
         self._gauge = self._scaled_gauge()
