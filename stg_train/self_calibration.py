@@ -26,6 +26,11 @@ The same pixel pairs also fit each camera's own falloff (`RigMeasurement.camera_
 whether the lenses share one. The last round's flow on textured pixels, against the epipolar lines of
 the stated poses, tells whether those poses are off (`RigMeasurement.epipolar`).
 
+Once the model has a geometry, `measure_falloff_with_depth` measures the shared falloff again from
+pixel pairs that the model's rendered depth matches instead of the flow (the trainer does so a third of
+the way through a run whose falloff was measured here): the flow's matches leave the corners about 0.02
+too bright (docs/training.md, "Real captures").
+
 `calibrate_rig` turns the measurement into what training uses, with a quiet fallback: the falloff
 (none where the cameras do not overlap, the lenses differ, the estimate is out of range or too small to
 matter), whether the cameras' colours disagree enough to learn a per-camera appearance, and whether
@@ -236,6 +241,75 @@ def calibrate_rig(dataset, config, progress: Callable[[int, int], None] | None =
                          f"lines of the stated poses, in {size}: {choice}")
     return (replace(config, lens_falloff=falloff, appearance=appearance, pose_refine=poses),
             RigCalibration(falloff, appearance, poses, estimate, tuple(notes)))
+
+
+class FalloffMeasurement(NamedTuple):
+    """The shared falloff measured with a model's geometry (measure_falloff_with_depth): k (k1, k2) of
+    1 + k1 s + k2 s^2; corner_error: two standard errors of its corner brightness; pairs: pixel pairs."""
+
+    k: tuple[float, float]
+    corner_error: float
+    pairs: int
+
+    @property
+    def corner_brightness(self) -> float:
+        return 1.0 + self.k[0] + self.k[1]
+
+
+#: A pixel is matched through the model's geometry where its render is opaque (alpha over this) and the
+#: neighbour's render sees the same surface there (depth within DEPTH_AGREEMENT of it, relative).
+OPAQUE, DEPTH_AGREEMENT = 0.99, 0.01
+
+
+def measure_falloff_with_depth(dataset, cameras, depths: dict, frames, neighbours: int = 4,
+                               seed: int = 0) -> FalloffMeasurement:
+    """The training cameras' shared falloff measured as measure_rig does, the pixel pairs matched by a
+    model's geometry instead of the flow: depths[(c, f)] = (depth, alpha), (H, W) each at the camera's
+    full size, the camera-space z and the opacity the model renders for training camera c at frame f
+    through cameras[c] (the poses the model holds: refined, or stated). A pixel of c is matched to where
+    its surface lands in each of c's `neighbours` nearest training cameras, where both renders see that
+    surface (OPAQUE, DEPTH_AGREEMENT). One round: the matches do not depend on the brightness.
+    Raises ValueError when fewer than MIN_PAIRS pixel pairs are found."""
+    cams = list(dataset.train_cameras)
+    rows = []
+    for f in frames:
+        pictures = {c: dataset.image(c, f).astype(np.float32) for c in cams}
+        blurred = {c: cv2.GaussianBlur(p, (0, 0), 1.0) for c, p in pictures.items()}
+        radial = {c: radial_grid(cameras[c], p.shape[:2]).astype(np.float32) for c, p in pictures.items()}
+        for i, j in _neighbour_pairs(dataset, cams, neighbours):
+            a, b = cams[i], cams[j]
+            match = _geometric_match(cameras[a], cameras[b], depths[a, f], depths[b, f], pictures[a])
+            rows.append(_pixel_pairs(blurred[a], blurred[b], match, radial[a], radial[b], i, j))
+    data = [np.concatenate(parts) for parts in zip(*rows)]
+    if len(data[0]) < MIN_PAIRS:
+        raise ValueError(f"the model's geometry matches too few pixels ({len(data[0])} pixel pairs, at least "
+                         f"{MIN_PAIRS} needed)")
+    total = len(data[0])
+    if total > MAX_PAIRS:
+        keep = np.random.default_rng(seed).choice(total, MAX_PAIRS, replace=False)
+        data = [d[keep] for d in data]
+    _, logv, error = _fit(*data, num_cameras=len(cams))
+    return FalloffMeasurement(_as_polynomial(logv), float(2 * error * np.exp(logv.sum())), total)
+
+
+def _geometric_match(camera_a, camera_b, seen_a, seen_b, picture_a) -> _Match:
+    """Where each pixel of camera a lands in camera b through the rendered depth (seen_a, seen_b:
+    (depth, alpha) of each), as a _Match: ok where a's render is opaque, b's render sees the same
+    surface there and it lands inside."""
+    depth_a, alpha_a = seen_a
+    depth_b = np.asarray(seen_b[0], np.float32)
+    h, w = depth_a.shape
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    with np.errstate(invalid="ignore"):
+        uv, z = camera_b.project(camera_a.unproject(u + 0.5, v + 0.5, depth_a))
+    u2, v2 = (uv[..., 0] - 0.5).astype(np.float32), (uv[..., 1] - 0.5).astype(np.float32)
+    hb, wb = depth_b.shape
+    inside = np.isfinite(u2) & np.isfinite(v2) & (u2 > 1) & (u2 < wb - 2) & (v2 > 1) & (v2 < hb - 2)
+    u2, v2 = np.where(inside, u2, 0).astype(np.float32), np.where(inside, v2, 0).astype(np.float32)
+    there = cv2.remap(depth_b, u2, v2, cv2.INTER_LINEAR)
+    ok = inside & (np.asarray(alpha_a) > OPAQUE) & (z > 0) & (np.abs(there - z) < DEPTH_AGREEMENT * z)
+    grey = _grey(picture_a).astype(np.float32) / 255
+    return _Match(u2, v2, ok, np.abs(cv2.Laplacian(grey, cv2.CV_32F)))
 
 
 def _decide_falloff(estimate: RigMeasurement) -> tuple[tuple[float, float] | None, str]:

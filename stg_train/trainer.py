@@ -37,7 +37,7 @@ from .losses import loss_fn
 from .metrics import psnr_of_mse
 from .params import LearningRates, STGParams, extent_of, position_lr, view_inputs
 from .pose_refine import PoseCorrections
-from .self_calibration import calibrate_rig, needs_calibration
+from .self_calibration import UNCERTAIN, calibrate_rig, measure_falloff_with_depth, needs_calibration
 from .render import rasterize
 from .strategy import (DensityControl, GuidedSampling, GuidedSettings, Schedule, SeparateRotation, StepContext,
                        Strategy, Thresholds)
@@ -97,6 +97,15 @@ def frame_weights(num_frames: int, context: tuple[int, int], edge_weight: float)
     return None if np.all(p == p[0]) else p / p.sum()
 
 
+#: A falloff measured before training (TrainConfig.lens_falloff "auto") is measured again at this fraction
+#: of the run from the model's own geometry (Trainer.remeasure_falloff): the flow's matches leave the
+#: corners about 0.02 too bright, the model's depth does not (docs/training.md, "Real captures").
+FALLOFF_REMEASURE_AT = 1 / 3
+#: ... and trained on with unless its corner brightness differs from the flow's by more than this (a model
+#: whose geometry is not yet the scene's: a short run).
+FALLOFF_AGREEMENT = 0.05
+
+
 class Trainer:
     """Trains STGParams on a Dataset (stg_train.data.Dataset).
 
@@ -122,7 +131,12 @@ class Trainer:
         self.calibration = None
         # lens falloff, appearance, pose refinement "auto": decided from the rig (a resumed run keeps its choices)
         if needs_calibration(config) and _state is None:
+            measured = config.lens_falloff == "auto"
             config, self.calibration = calibrate_rig(dataset, config, progress=calibration_progress)
+            self.falloff_measured = measured and config.lens_falloff is not None
+        else:  # measured before training and to be measured again (remeasure_falloff)
+            self.falloff_measured = bool((_state or {}).get("falloff_measured", False))
+        self.falloff_note: str | None = None  # what remeasure_falloff found, for stg-train to say
         # (k1, k2) of a known vignetting, checked (a ValueError) before anything is computed
         self.lens_falloff = None if config.lens_falloff is None else known_falloff(config.lens_falloff)
         self.dataset, self.config = dataset, config
@@ -316,7 +330,40 @@ class Trainer:
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         self._camera_step()
+        if self.falloff_measured and self.step == max(1, round(self.steps * FALLOFF_REMEASURE_AT)):
+            self.remeasure_falloff()
         return {"loss": loss.item(), "psnr": psnr_of_mse(max(mse, 1e-12))}
+
+    @torch.no_grad()
+    def remeasure_falloff(self, frames=None) -> None:
+        """Measure the lens falloff again from the model's geometry (its depth rendered through the
+        training cameras as it holds them, at `frames`: default the first and the middle frame, as
+        before training; self_calibration.measure_falloff_with_depth) and train on with it, unless it
+        cannot be measured or trusted; self.falloff_note says which."""
+        ds, before = self.dataset, self.lens_falloff
+        frames = tuple(sorted({0, ds.num_frames // 2})) if frames is None else tuple(frames)
+        cameras = self.refined_cameras()
+        depths = {}
+        for c in ds.train_cameras:
+            for f in frames:
+                out = self.render(cameras[c], frame_time(ds, f))[1]
+                depths[c, f] = (out.depth.cpu().numpy(), out.alpha.cpu().numpy())
+        said = f"lens falloff measured again at step {self.step}, from the model's geometry"
+        try:
+            found = measure_falloff_with_depth(ds, cameras, depths, frames)
+            if found.corner_error > UNCERTAIN:
+                raise ValueError(f"uncertain (+-{found.corner_error:.3f})")
+            if abs(found.corner_brightness - (1 + before[0] + before[1])) > FALLOFF_AGREEMENT:
+                raise ValueError(f"its corner brightness {found.corner_brightness:.3f} disagrees with the flow's "
+                                 f"{1 + before[0] + before[1]:.3f}")
+            k = known_falloff(found.k)
+        except ValueError as e:
+            self.falloff_note = f"{said}: {e}; training on with the flow's (K1 {before[0]:.3f}, K2 {before[1]:.3f})"
+            return
+        self.lens_falloff, self._falloffs = k, {}
+        self.config = replace(self.config, lens_falloff=k)
+        self.falloff_note = (f"{said}: K1 {k[0]:.3f}, K2 {k[1]:.3f} (corner brightness {found.corner_brightness:.3f}; "
+                             f"was {1 + before[0] + before[1]:.3f} from the flow)")
 
     def train(self, progress: bool = True, callback: Callable[["Trainer"], None] | None = None) -> None:
         """Run to self.steps, checkpointing every config.checkpoint_every steps and at the end.
@@ -366,7 +413,7 @@ class Trainer:
                 "strategies": [s.state_dict() for s in self.strategies], "box": self.box.tolist(),
                 "history": self.history, "seconds": self.seconds,
                 "bounds": None if self.dataset.bounds is None else self.dataset.bounds.tolist(),
-                "bounds_source": self.dataset.bounds_source,
+                "bounds_source": self.dataset.bounds_source, "falloff_measured": self.falloff_measured,
                 "appearance": None if self.appearance is None else self.appearance.state_dict(),
                 "poses": None if self.poses is None else self.poses.state_dict(),
                 "camera_optimizer": None if self.camera_optimizer is None else self.camera_optimizer.state_dict(),

@@ -13,7 +13,8 @@ from stg_train.config import TrainConfig
 from stg_train.data import load_n3v
 from stg_train.data.dataset import Dataset
 from stg_train.rotations import rotation_from_axis_angle
-from stg_train.self_calibration import EPIPOLAR, GAIN_SPREAD, _epipolar_distances, _Match, calibrate_rig, measure_rig
+from stg_train.self_calibration import (EPIPOLAR, GAIN_SPREAD, _epipolar_distances, _Match, calibrate_rig,
+                                        measure_falloff_with_depth, measure_rig)
 from stg_train.synthetic import SyntheticScene, write_n3v
 from stg_train.trainer import Trainer
 
@@ -192,3 +193,73 @@ def test_stg_train_leaves_both_auto_unless_told():
     assert (told.lens_falloff, told.appearance, told.pose_refine) == (None, False, False)
     told = config("--lens-falloff=-0.2", "--appearance", "--pose-refine")
     assert (told.lens_falloff, told.appearance, told.pose_refine) == ((-0.2, 0.0), True, True)
+
+
+@pytest.fixture(scope="module")
+def vignetting_only(tmp_path_factory):
+    """The scene captured with the default vignetting (30 % at the corners) and nothing else, 2 frames."""
+    capture = CaptureModel(gain=0, white_balance=0, noise=0, rotation_deg=0, translation=0)
+    return _capture(tmp_path_factory.mktemp("vignetting"), capture)[0]
+
+
+def _true_depths(dataset):
+    """{(camera, frame): (depth, alpha)} of the scene's true geometry, as a perfect model renders it."""
+    scene = SyntheticScene(seed=0, duration=1.0)
+    depths = {}
+    for c in dataset.train_cameras:
+        for f in range(dataset.num_frames):
+            depth = scene.render(dataset.cameras[c], f / dataset.fps, return_depth=True)[1]
+            depths[c, f] = (depth, np.ones_like(depth))
+    return depths
+
+
+def test_the_models_geometry_measures_the_falloff_without_the_flows_bias(vignetting_only, clean):
+    flow = measure_rig(vignetting_only)
+    found = measure_falloff_with_depth(vignetting_only, vignetting_only.cameras, _true_depths(vignetting_only), (0, 1))
+    assert abs(found.corner_brightness - 0.7) < 0.01 and found.corner_error < 0.01 and found.pairs > 10_000
+    assert abs(found.corner_brightness - 0.7) < abs(flow.corner_brightness - 0.7)
+    none = measure_falloff_with_depth(clean, clean.cameras, _true_depths(clean), (0, 1))
+    assert abs(none.corner_brightness - 1.0) < 0.01
+
+
+def test_a_geometry_that_matches_nothing_is_refused(clean):
+    depths = {key: (depth, np.zeros_like(alpha)) for key, (depth, alpha) in _true_depths(clean).items()}  # transparent
+    with pytest.raises(ValueError, match="matches too few pixels"):
+        measure_falloff_with_depth(clean, clean.cameras, depths, (0, 1))
+
+
+def test_the_trainer_measures_the_falloff_again_a_third_of_the_way(vignetting_only, tmp_path, monkeypatch):
+    import stg_train.trainer as trainer_module
+
+    seen = {}
+    def geometry(dataset, cameras, depths, frames):  # the model's geometry after 2 steps is not the scene's yet
+        seen.update(step=trainer.step, frames=frames, cameras=len(depths))
+        return measure_falloff_with_depth(dataset, cameras, _true_depths(dataset), frames)
+
+    monkeypatch.setattr(trainer_module, "measure_falloff_with_depth", geometry)
+    trainer = Trainer(vignetting_only, TrainConfig(iterations=6, num_points=500), out_dir=tmp_path)
+    flow_k = trainer.lens_falloff
+    trainer.train(progress=False)
+    assert seen == {"step": 2, "frames": (0, 1), "cameras": 2 * 11}
+    assert trainer.config.lens_falloff == trainer.lens_falloff != flow_k
+    assert abs(1 + sum(trainer.lens_falloff) - 0.7) < 0.01
+    assert trainer.falloff_note.startswith("lens falloff measured again at step 2, from the model's geometry: K1")
+    resumed = Trainer.resume(vignetting_only, tmp_path / "checkpoint.pt")
+    assert resumed.lens_falloff == trainer.lens_falloff and resumed.falloff_measured
+    seen.clear()
+    given = Trainer(vignetting_only, TrainConfig(iterations=3, num_points=500, lens_falloff=(-0.3, 0.0)))
+    given.train(progress=False)
+    assert not given.falloff_measured and given.falloff_note is None and seen == {}  # a known falloff stays
+
+
+def test_a_measurement_again_that_disagrees_keeps_the_flows(vignetting_only, monkeypatch):
+    import stg_train.trainer as trainer_module
+    from stg_train.self_calibration import FalloffMeasurement
+
+    monkeypatch.setattr(trainer_module, "measure_falloff_with_depth",
+                        lambda *args: FalloffMeasurement((-0.6, 0.0), 0.001, 50_000))  # far from the flow's
+    trainer = Trainer(vignetting_only, TrainConfig(iterations=3, num_points=500))
+    flow_k = trainer.lens_falloff
+    trainer.train(progress=False)
+    assert trainer.lens_falloff == flow_k == trainer.config.lens_falloff
+    assert "disagrees with the flow's" in trainer.falloff_note
