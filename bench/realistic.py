@@ -7,12 +7,15 @@ against the CLEAN lossless frames: raw and colour-aligned PSNR (stg_train.metric
 per camera) on the held-out camera, rendered at its TRUE pose (scene.json), and on two novel views
 inside the rig (ray traced); the same views again moved into the model's frame (capture.in_model_frame:
 pictures fix a model only up to a similarity of the world, and the stated poses' frame is not the
-truth's); plus the training cameras' pose error against the truth, as stated and as refined.
+truth's); and each of those again with its pose aligned to its own pictures against the trained model
+(stg_train.pose_align: test-time pose optimisation, as BARF and NeRF-- score pose-refining methods, the
+clean capture's model the same way); plus the training cameras' pose error against the truth, as stated
+and as refined.
 
     python bench/realistic.py [--iterations N] [--points N] [--seeds 0,1] [--variants plain,appearance,...]
                               [--captures clean,realistic] [--cameras C] [--frames F] [--width W]
                               [--height H] [--set KEY=VALUE ...] [--capture KEY=VALUE ...] [--threads 2]
-                              [--data DIR] [--json PATH] [--checkpoints DIR]
+                              [--data DIR] [--json PATH] [--checkpoints DIR [--reuse]]
 
 Variants: default (TrainConfig's defaults: the falloff, the appearance and the pose refinement "auto",
 decided from the rig's measurement, stg_train.self_calibration.calibrate_rig), plain (none of the
@@ -47,6 +50,7 @@ from stg_train.data import load_n3v
 from stg_train.data.bounds import typical_depth
 from stg_train.data.dataset import Dataset
 from stg_train.metrics import evaluate_images
+from stg_train.pose_align import align_pose
 from stg_train.pipeline import DEMO_SCENE
 from stg_train.synthetic import NOVEL_VIEWS, SyntheticScene, novel_view_dataset, write_n3v
 from stg_train.trainer import Trainer, TrainConfig
@@ -120,6 +124,23 @@ def in_frame(views: dict[str, Dataset], trainer: Trainer, data: Dataset, record:
             for name, ds in views.items()}
 
 
+#: Frames of a view that its pose is aligned on (spread over the video), and Gauss-Newton steps.
+ALIGN_FRAMES, ALIGN_STEPS = 4, 3
+
+
+def pose_aligned(views: dict[str, Dataset], trainer: Trainer, depth: float) -> tuple[dict[str, Dataset], dict]:
+    """(`views` each with its pose aligned to its own pictures against the trained model's canonical
+    renders (pose_align.align_pose, with an affine colour map), {view: (degrees, world units) moved})."""
+    out, moved = {}, {}
+    for name, ds in views.items():
+        frames = np.linspace(0, ds.num_frames - 1, ALIGN_FRAMES).round().astype(int)
+        result = align_pose(lambda camera, j: trainer.render_numpy(camera, j / ds.num_frames), ds.cameras[0],
+                            [(int(j), ds.image(0, int(j))) for j in frames], depth, iterations=ALIGN_STEPS)
+        out[name] = Dataset([result.camera], ds.frames, ds.fps, test_cameras=[0])
+        moved[name] = (result.rotation_deg, result.shift)
+    return out, moved
+
+
 def score(trainer: Trainer, views: dict[str, Dataset]) -> dict:
     """{view: (psnr, aligned_psnr)} of the trainer's canonical renders (no appearance) against `views`."""
     out = {}
@@ -149,6 +170,8 @@ def main() -> None:
     ap.add_argument("--data", default=None, help="folder for the captures (written once; default: a temp folder)")
     ap.add_argument("--json", default=None, help="also write the results as JSON here")
     ap.add_argument("--checkpoints", default=None, help="also save each trained model's checkpoint in this folder")
+    ap.add_argument("--reuse", action="store_true",
+                    help="score the model saved in --checkpoints instead of training it again, where there is one")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     os.environ.setdefault("NUMBA_NUM_THREADS", str(args.threads))
@@ -176,18 +199,27 @@ def main() -> None:
                     chosen["lens_falloff"] = (-vignetting, 0.0) if vignetting else None
                 config = TrainConfig(iterations=args.iterations, num_points=args.points, seed=seed, **chosen)
                 start = time.perf_counter()
-                trainer = Trainer(data, config)
-                trainer.train(progress=False)
-                if args.checkpoints:
-                    Path(args.checkpoints).mkdir(parents=True, exist_ok=True)
-                    trainer.save_checkpoint(Path(args.checkpoints) / f"{seed}-{capture_name}-{variant}.pt")
-                row = {"seed": seed, "capture": capture_name, "variant": variant, "seconds": time.perf_counter() - start,
+                saved = None if not args.checkpoints else Path(args.checkpoints) / f"{seed}-{capture_name}-{variant}.pt"
+                if args.reuse and saved is not None and saved.exists():
+                    trainer = Trainer.resume(data, saved)
+                else:
+                    trainer = Trainer(data, config)
+                    trainer.train(progress=False)
+                    if saved is not None:
+                        saved.parent.mkdir(parents=True, exist_ok=True)
+                        trainer.save_checkpoint(saved)
+                seconds = time.perf_counter() - start
+                framed = in_frame(views, trainer, data, record if capture_name == "realistic" else None)
+                aligned, moved = pose_aligned(framed, trainer, typical_depth(data.bounds[data.train_cameras]))
+                row = {"seed": seed, "capture": capture_name, "variant": variant, "seconds": seconds,
                        "gaussians": trainer.params.count, "views": score(trainer, views),
-                       "views_in_frame": score(trainer, in_frame(views, trainer, data,
-                                                                 record if capture_name == "realistic" else None))}
+                       "views_in_frame": score(trainer, framed), "views_aligned": score(trainer, aligned),
+                       "alignment": moved}
                 if trainer.calibration is not None and trainer.calibration.estimate is not None:
                     row["measured_falloff"] = list(trainer.calibration.estimate.k)
                     row["chosen"] = {k: getattr(trainer.config, k) for k in ("lens_falloff", "appearance", "pose_refine")}
+                if trainer.falloff_note:
+                    row["falloff_remeasured"] = trainer.falloff_note
                 if trainer.appearance is not None:
                     summary = trainer.appearance.summary()
                     row["vignetting"] = np.mean([a["vignetting"] for a in summary], axis=0).tolist()
@@ -217,10 +249,15 @@ def main() -> None:
                 print(f"seed {seed} {capture_name:9s} {variant:10s} {figures}{pose}{extra}  ({row['gaussians']} Gaussians, "
                       f"{row['seconds']:.0f} s)", flush=True)
                 figures = "  ".join(f"{v}: {p:.2f} / {a:.2f} dB" for v, (p, a) in row["views_in_frame"].items())
+                if "falloff_remeasured" in row:
+                    print(f"{'':31s}{row['falloff_remeasured']}", flush=True)
                 print(f"{'':31s}in the model's frame: {figures}", flush=True)
+                figures = "  ".join(f"{v}: {p:.2f} / {a:.2f} dB (moved {row['alignment'][v][0]:.3f} deg, "
+                                    f"{row['alignment'][v][1]:.4f})" for v, (p, a) in row["views_aligned"].items())
+                print(f"{'':31s}each view's pose aligned: {figures}", flush=True)
     print("\nraw / colour-aligned PSNR against the clean lossless frames (held-out camera at its true pose; in the "
           "model's frame: every view moved by the similarity of the world that best takes the true training poses "
-          "to the model's)")
+          "to the model's; each view's pose aligned: then aligned to its own pictures, stg_train.pose_align)")
     if args.json:
         Path(args.json).write_text(json.dumps({"settings": {**vars(args), "set": settings}, "results": results},
                                               indent=1, default=str) + "\n")
