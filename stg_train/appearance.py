@@ -18,6 +18,7 @@ state alone (its gradient stays None).
 """
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -85,6 +86,17 @@ class CameraAppearance:
         for c in self.train_cameras:
             self.matrix[c].sub_(excess)
             self.bias[c].sub_(offset)
+
+    @torch.no_grad()
+    def set_gains(self, gains: np.ndarray) -> None:
+        """Start each training camera's transform again from a measured colour gain: matrix diag(gain),
+        bias 0; gains (C, 3) in train_cameras order, divided by their mean over the cameras (the
+        transforms' mean stays the identity)."""
+        gains = np.asarray(gains, np.float64)
+        gains = gains / gains.mean(0)
+        for c, gain in zip(self.train_cameras, gains):
+            self.matrix[c].copy_(torch.diag(torch.as_tensor(gain, dtype=self.matrix[c].dtype)))
+            self.bias[c].zero_()
 
     def state_dict(self) -> dict:
         return {"train_cameras": self.train_cameras, "vignetting": self.vignetting,

@@ -329,8 +329,8 @@ def train(dataset, out, config: TrainConfig, resume: bool = False, quiet: bool =
     lpips = _lpips(quiet) if lpips is None else lpips  # (said after the run's own settings and notices)
     if trainer.step < trainer.steps:
         _run_training(trainer, ckpt, quiet, callback, stop_on_signal)
-    if trainer.falloff_note and not quiet:
-        print(f"stg-train: {trainer.falloff_note}", file=sys.stderr)
+    if trainer.remeasure_note and not quiet:
+        print(f"stg-train: {trainer.remeasure_note}", file=sys.stderr)
     with warnings_said():  # export's ExportWarning: said, the run goes on
         report = export_trainer(trainer, out / "model.stg", check=check)
     result = evaluate_player(Player(report.path, device="cpu"), dataset.shown(), lpips=lpips)

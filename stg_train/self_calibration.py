@@ -26,10 +26,11 @@ The same pixel pairs also fit each camera's own falloff (`RigMeasurement.camera_
 whether the lenses share one. The last round's flow on textured pixels, against the epipolar lines of
 the stated poses, tells whether those poses are off (`RigMeasurement.epipolar`).
 
-Once the model has a geometry, `measure_falloff_with_depth` measures the shared falloff again from
-pixel pairs that the model's rendered depth matches instead of the flow (the trainer does so a third of
-the way through a run whose falloff was measured here): the flow's matches leave the corners about 0.02
-too bright (docs/training.md, "Real captures").
+Once the model has a geometry, `measure_rig_with_depth` measures the shared falloff and the cameras'
+colour gains again from pixel pairs that the model's rendered depth matches instead of the flow (the
+trainer does so a third of the way through a run whose falloff was measured here): the flow's matches
+leave the corners about 0.02 too bright, and these gains come 15 times closer to the truth than what
+training learns (docs/training.md, "Real captures").
 
 `calibrate_rig` turns the measurement into what training uses, with a quiet fallback: the falloff
 (none where the cameras do not overlap, the lenses differ, the estimate is out of range or too small to
@@ -243,13 +244,16 @@ def calibrate_rig(dataset, config, progress: Callable[[int, int], None] | None =
             RigCalibration(falloff, appearance, poses, estimate, tuple(notes)))
 
 
-class FalloffMeasurement(NamedTuple):
-    """The shared falloff measured with a model's geometry (measure_falloff_with_depth): k (k1, k2) of
-    1 + k1 s + k2 s^2; corner_error: two standard errors of its corner brightness; pairs: pixel pairs."""
+class GeometricMeasurement(NamedTuple):
+    """The rig measured with a model's geometry (measure_rig_with_depth): k (k1, k2) of the shared
+    falloff 1 + k1 s + k2 s^2; corner_error: two standard errors of its corner brightness; pairs: pixel
+    pairs; gains: (C, 3) the training cameras' colour gains as RigMeasurement's (their geometric mean
+    over the cameras 1; dataset.train_cameras order)."""
 
     k: tuple[float, float]
     corner_error: float
     pairs: int
+    gains: np.ndarray
 
     @property
     def corner_brightness(self) -> float:
@@ -261,14 +265,14 @@ class FalloffMeasurement(NamedTuple):
 OPAQUE, DEPTH_AGREEMENT = 0.99, 0.01
 
 
-def measure_falloff_with_depth(dataset, cameras, depths: dict, frames, neighbours: int = 4,
-                               seed: int = 0) -> FalloffMeasurement:
-    """The training cameras' shared falloff measured as measure_rig does, the pixel pairs matched by a
-    model's geometry instead of the flow: depths[(c, f)] = (depth, alpha), (H, W) each at the camera's
-    full size, the camera-space z and the opacity the model renders for training camera c at frame f
-    through cameras[c] (the poses the model holds: refined, or stated). A pixel of c is matched to where
-    its surface lands in each of c's `neighbours` nearest training cameras, where both renders see that
-    surface (OPAQUE, DEPTH_AGREEMENT). One round: the matches do not depend on the brightness.
+def measure_rig_with_depth(dataset, cameras, depths: dict, frames, neighbours: int = 4,
+                           seed: int = 0) -> GeometricMeasurement:
+    """The training cameras' shared falloff and colour gains measured as measure_rig does, the pixel
+    pairs matched by a model's geometry instead of the flow: depths[(c, f)] = (depth, alpha), (H, W)
+    each at the camera's full size, the camera-space z and the opacity the model renders for training
+    camera c at frame f through cameras[c] (the poses the model holds: refined, or stated). A pixel of
+    c is matched to where its surface lands in each of c's `neighbours` nearest training cameras, where
+    both renders see that surface (OPAQUE, DEPTH_AGREEMENT). One round: the matches do not depend on the brightness.
     Raises ValueError when fewer than MIN_PAIRS pixel pairs are found."""
     cams = list(dataset.train_cameras)
     rows = []
@@ -288,8 +292,8 @@ def measure_falloff_with_depth(dataset, cameras, depths: dict, frames, neighbour
     if total > MAX_PAIRS:
         keep = np.random.default_rng(seed).choice(total, MAX_PAIRS, replace=False)
         data = [d[keep] for d in data]
-    _, logv, error = _fit(*data, num_cameras=len(cams))
-    return FalloffMeasurement(_as_polynomial(logv), float(2 * error * np.exp(logv.sum())), total)
+    gains, logv, error = _fit(*data, num_cameras=len(cams))
+    return GeometricMeasurement(_as_polynomial(logv), float(2 * error * np.exp(logv.sum())), total, np.exp(gains))
 
 
 def _geometric_match(camera_a, camera_b, seen_a, seen_b, picture_a) -> _Match:

@@ -37,7 +37,7 @@ from .losses import loss_fn
 from .metrics import psnr_of_mse
 from .params import LearningRates, STGParams, extent_of, position_lr, view_inputs
 from .pose_refine import PoseCorrections
-from .self_calibration import UNCERTAIN, calibrate_rig, measure_falloff_with_depth, needs_calibration
+from .self_calibration import UNCERTAIN, calibrate_rig, measure_rig_with_depth, needs_calibration
 from .render import rasterize
 from .strategy import (DensityControl, GuidedSampling, GuidedSettings, Schedule, SeparateRotation, StepContext,
                        Strategy, Thresholds)
@@ -97,12 +97,13 @@ def frame_weights(num_frames: int, context: tuple[int, int], edge_weight: float)
     return None if np.all(p == p[0]) else p / p.sum()
 
 
-#: A falloff measured before training (TrainConfig.lens_falloff "auto") is measured again at this fraction
-#: of the run from the model's own geometry (Trainer.remeasure_falloff): the flow's matches leave the
-#: corners about 0.02 too bright, the model's depth does not (docs/training.md, "Real captures").
-FALLOFF_REMEASURE_AT = 1 / 3
-#: ... and trained on with unless its corner brightness differs from the flow's by more than this (a model
-#: whose geometry is not yet the scene's: a short run).
+#: A run whose lens falloff was measured before training (TrainConfig.lens_falloff "auto") measures the rig
+#: again at this fraction of its steps, through the model's own geometry (Trainer.remeasure_rig): the
+#: falloff (the flow's matches leave the corners about 0.02 too bright) and, where an appearance is
+#: learned, the cameras' colour gains, which then hold its transforms (docs/training.md, "Real captures").
+REMEASURE_AT = 1 / 3
+#: The falloff so measured is trained on with unless its corner brightness differs from the flow's by
+#: more than this (a model whose geometry is not yet the scene's: a very short run).
 FALLOFF_AGREEMENT = 0.05
 
 
@@ -134,9 +135,9 @@ class Trainer:
             measured = config.lens_falloff == "auto"
             config, self.calibration = calibrate_rig(dataset, config, progress=calibration_progress)
             self.falloff_measured = measured and config.lens_falloff is not None
-        else:  # measured before training and to be measured again (remeasure_falloff)
+        else:  # measured before training and to be measured again (remeasure_rig)
             self.falloff_measured = bool((_state or {}).get("falloff_measured", False))
-        self.falloff_note: str | None = None  # what remeasure_falloff found, for stg-train to say
+        self.remeasure_note: str | None = None  # what remeasure_rig found, for stg-train to say
         # (k1, k2) of a known vignetting, checked (a ValueError) before anything is computed
         self.lens_falloff = None if config.lens_falloff is None else known_falloff(config.lens_falloff)
         self.dataset, self.config = dataset, config
@@ -330,16 +331,18 @@ class Trainer:
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         self._camera_step()
-        if self.falloff_measured and self.step == max(1, round(self.steps * FALLOFF_REMEASURE_AT)):
-            self.remeasure_falloff()
+        if self.falloff_measured and self.step == max(1, round(self.steps * REMEASURE_AT)):
+            self.remeasure_rig()
         return {"loss": loss.item(), "psnr": psnr_of_mse(max(mse, 1e-12))}
 
     @torch.no_grad()
-    def remeasure_falloff(self, frames=None) -> None:
-        """Measure the lens falloff again from the model's geometry (its depth rendered through the
-        training cameras as it holds them, at `frames`: default the first and the middle frame, as
-        before training; self_calibration.measure_falloff_with_depth) and train on with it, unless it
-        cannot be measured or trusted; self.falloff_note says which."""
+    def remeasure_rig(self, frames=None) -> None:
+        """Measure the rig again through the model's geometry (its depth rendered through the training
+        cameras as it holds them, at `frames`: default the first and the middle frame, as before
+        training; self_calibration.measure_rig_with_depth): train on with that lens falloff unless it
+        cannot be measured or trusted, and then, where an appearance is learned, set each camera's
+        transform to its measured colour gains and hold it (hold_appearance). self.remeasure_note says
+        what was done."""
         ds, before = self.dataset, self.lens_falloff
         frames = tuple(sorted({0, ds.num_frames // 2})) if frames is None else tuple(frames)
         cameras = self.refined_cameras()
@@ -350,7 +353,7 @@ class Trainer:
                 depths[c, f] = (out.depth.cpu().numpy(), out.alpha.cpu().numpy())
         said = f"lens falloff measured again at step {self.step}, from the model's geometry"
         try:
-            found = measure_falloff_with_depth(ds, cameras, depths, frames)
+            found = measure_rig_with_depth(ds, cameras, depths, frames)
             if found.corner_error > UNCERTAIN:
                 raise ValueError(f"uncertain (+-{found.corner_error:.3f})")
             if abs(found.corner_brightness - (1 + before[0] + before[1])) > FALLOFF_AGREEMENT:
@@ -358,12 +361,26 @@ class Trainer:
                                  f"{1 + before[0] + before[1]:.3f}")
             k = known_falloff(found.k)
         except ValueError as e:
-            self.falloff_note = f"{said}: {e}; training on with the flow's (K1 {before[0]:.3f}, K2 {before[1]:.3f})"
+            self.remeasure_note = f"{said}: {e}; training on with the flow's (K1 {before[0]:.3f}, K2 {before[1]:.3f})"
             return
         self.lens_falloff, self._falloffs = k, {}
         self.config = replace(self.config, lens_falloff=k)
-        self.falloff_note = (f"{said}: K1 {k[0]:.3f}, K2 {k[1]:.3f} (corner brightness {found.corner_brightness:.3f}; "
-                             f"was {1 + before[0] + before[1]:.3f} from the flow)")
+        self.remeasure_note = (f"{said}: K1 {k[0]:.3f}, K2 {k[1]:.3f} (corner brightness "
+                               f"{found.corner_brightness:.3f}; was {1 + before[0] + before[1]:.3f} from the flow)")
+        if self.appearance is not None:
+            self.hold_appearance(found.gains)
+            self.remeasure_note += "; the cameras' colours set from the same measurement and held"
+
+    def hold_appearance(self, gains: np.ndarray) -> None:
+        """Set each training camera's colour transform to its measured gains (CameraAppearance.set_gains;
+        gains (C, 3) in train_cameras order) and hold it for the rest of the run: what Adam learns of
+        them stays about 1 % off the truth, where these are within 0.1 % (docs/training.md)."""
+        self.appearance.set_gains(gains)
+        for group in self.camera_optimizer.param_groups:
+            if group["name"] in ("appearance_matrix", "appearance_bias"):
+                group["initial_lr"] = group["lr"] = 0.0
+                for param in group["params"]:
+                    self.camera_optimizer.state.pop(param, None)
 
     def train(self, progress: bool = True, callback: Callable[["Trainer"], None] | None = None) -> None:
         """Run to self.steps, checkpointing every config.checkpoint_every steps and at the end.

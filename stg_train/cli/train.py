@@ -219,8 +219,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "what neighbouring cameras see of the same surfaces at the same instant (seconds for the "
                         "demo's 12 cameras) and prints it; it trains without one where the cameras overlap too "
                         "little, their lenses differ or the corners are within 3 %% of the centre; a third of the "
-                        "way through, it is measured again through the model's own geometry (printed after "
-                        "training); a resumed run keeps what its first run measured. 'none': no falloff "
+                        "way through, it is measured again through the model's own geometry, and with it the "
+                        "cameras' colours, which then hold the per-camera appearance (printed after training); "
+                        "a resumed run keeps what its first run measured. 'none': no falloff "
                         "(docs/training.md)")
     p.add_argument("--viewer", nargs="?", type=port, const=8080, default=None, metavar="PORT",
                    help="show the model in the browser while it trains, at http://127.0.0.1:PORT (default "

@@ -45,7 +45,8 @@ def test_recovers_a_small_pose_error(scene):
     assert result.rotation_deg > 0.05 and result.shift > 0.001
     # a frame it was not aligned on agrees as well
     later = scene.render(truth, 0.8)
-    assert np.mean((scene.render(result.camera, 0.8) - later) ** 2) < 0.2 * np.mean((scene.render(stated, 0.8) - later) ** 2)
+    error = lambda camera: np.mean((scene.render(camera, 0.8) - later) ** 2)
+    assert error(result.camera) < 0.2 * error(stated)
 
 
 def test_the_pictures_colour_does_not_move_the_pose(scene):

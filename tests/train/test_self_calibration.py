@@ -1,6 +1,7 @@
 """The rig measured from its own pictures before training (stg_train.self_calibration): its lenses'
 falloff, its cameras' colour gains and their stated poses against the epipolar lines, on synthetic
 captures whose truth is known (stg_train.capture), and what training decides from it ("auto")."""
+import copy
 import json
 from dataclasses import asdict, replace
 
@@ -14,7 +15,7 @@ from stg_train.data import load_n3v
 from stg_train.data.dataset import Dataset
 from stg_train.rotations import rotation_from_axis_angle
 from stg_train.self_calibration import (EPIPOLAR, GAIN_SPREAD, _epipolar_distances, _Match, calibrate_rig,
-                                        measure_falloff_with_depth, measure_rig)
+                                        measure_rig_with_depth, measure_rig)
 from stg_train.synthetic import SyntheticScene, write_n3v
 from stg_train.trainer import Trainer
 
@@ -215,17 +216,17 @@ def _true_depths(dataset):
 
 def test_the_models_geometry_measures_the_falloff_without_the_flows_bias(vignetting_only, clean):
     flow = measure_rig(vignetting_only)
-    found = measure_falloff_with_depth(vignetting_only, vignetting_only.cameras, _true_depths(vignetting_only), (0, 1))
+    found = measure_rig_with_depth(vignetting_only, vignetting_only.cameras, _true_depths(vignetting_only), (0, 1))
     assert abs(found.corner_brightness - 0.7) < 0.01 and found.corner_error < 0.01 and found.pairs > 10_000
     assert abs(found.corner_brightness - 0.7) < abs(flow.corner_brightness - 0.7)
-    none = measure_falloff_with_depth(clean, clean.cameras, _true_depths(clean), (0, 1))
+    none = measure_rig_with_depth(clean, clean.cameras, _true_depths(clean), (0, 1))
     assert abs(none.corner_brightness - 1.0) < 0.01
 
 
 def test_a_geometry_that_matches_nothing_is_refused(clean):
     depths = {key: (depth, np.zeros_like(alpha)) for key, (depth, alpha) in _true_depths(clean).items()}  # transparent
     with pytest.raises(ValueError, match="matches too few pixels"):
-        measure_falloff_with_depth(clean, clean.cameras, depths, (0, 1))
+        measure_rig_with_depth(clean, clean.cameras, depths, (0, 1))
 
 
 def test_the_trainer_measures_the_falloff_again_a_third_of_the_way(vignetting_only, tmp_path, monkeypatch):
@@ -234,32 +235,78 @@ def test_the_trainer_measures_the_falloff_again_a_third_of_the_way(vignetting_on
     seen = {}
     def geometry(dataset, cameras, depths, frames):  # the model's geometry after 2 steps is not the scene's yet
         seen.update(step=trainer.step, frames=frames, cameras=len(depths))
-        return measure_falloff_with_depth(dataset, cameras, _true_depths(dataset), frames)
+        return measure_rig_with_depth(dataset, cameras, _true_depths(dataset), frames)
 
-    monkeypatch.setattr(trainer_module, "measure_falloff_with_depth", geometry)
+    monkeypatch.setattr(trainer_module, "measure_rig_with_depth", geometry)
     trainer = Trainer(vignetting_only, TrainConfig(iterations=6, num_points=500), out_dir=tmp_path)
     flow_k = trainer.lens_falloff
     trainer.train(progress=False)
     assert seen == {"step": 2, "frames": (0, 1), "cameras": 2 * 11}
     assert trainer.config.lens_falloff == trainer.lens_falloff != flow_k
     assert abs(1 + sum(trainer.lens_falloff) - 0.7) < 0.01
-    assert trainer.falloff_note.startswith("lens falloff measured again at step 2, from the model's geometry: K1")
+    assert trainer.remeasure_note.startswith("lens falloff measured again at step 2, from the model's geometry: K1")
     resumed = Trainer.resume(vignetting_only, tmp_path / "checkpoint.pt")
     assert resumed.lens_falloff == trainer.lens_falloff and resumed.falloff_measured
     seen.clear()
     given = Trainer(vignetting_only, TrainConfig(iterations=3, num_points=500, lens_falloff=(-0.3, 0.0)))
     given.train(progress=False)
-    assert not given.falloff_measured and given.falloff_note is None and seen == {}  # a known falloff stays
+    assert not given.falloff_measured and given.remeasure_note is None and seen == {}  # a known falloff stays
 
 
 def test_a_measurement_again_that_disagrees_keeps_the_flows(vignetting_only, monkeypatch):
     import stg_train.trainer as trainer_module
-    from stg_train.self_calibration import FalloffMeasurement
+    from stg_train.self_calibration import GeometricMeasurement
 
-    monkeypatch.setattr(trainer_module, "measure_falloff_with_depth",
-                        lambda *args: FalloffMeasurement((-0.6, 0.0), 0.001, 50_000))  # far from the flow's
+    monkeypatch.setattr(trainer_module, "measure_rig_with_depth",
+                        lambda *args: GeometricMeasurement((-0.6, 0.0), 0.001, 50_000, np.ones((11, 3))))  # far from the flow's
     trainer = Trainer(vignetting_only, TrainConfig(iterations=3, num_points=500))
     flow_k = trainer.lens_falloff
     trainer.train(progress=False)
     assert trainer.lens_falloff == flow_k == trainer.config.lens_falloff
-    assert "disagrees with the flow's" in trainer.falloff_note
+    assert "disagrees with the flow's" in trainer.remeasure_note
+
+
+def _true_cameras(dataset):
+    """The dataset's cameras at the true poses its capture record keeps (stg_train.capture)."""
+    from stg_train.capture import capture_record
+
+    truth = {c["name"]: np.asarray(c["true_world_to_camera"]) for c in capture_record(dataset.path)["cameras"]}
+    return [replace(c, world_to_camera=truth[c.name]) for c in dataset.cameras]
+
+
+def test_the_models_geometry_measures_the_cameras_gains(realistic):
+    dataset, effects = realistic
+    cameras = _true_cameras(dataset)
+    truth = np.log([effects[c].gain * effects[c].white_balance for c in dataset.train_cameras])
+    truth -= truth.mean(0)
+    found = measure_rig_with_depth(dataset, cameras, _true_depths(replace_cameras(dataset, cameras)), (0, 1))
+    flow = measure_rig(dataset)
+    error = lambda gains: np.sqrt(np.mean((np.log(gains) - np.log(gains).mean(0) - truth) ** 2))
+    assert error(found.gains) < 0.1 * np.sqrt(np.mean(truth ** 2))  # within a tenth of the cameras' spread
+    assert error(found.gains) < 0.5 * error(flow.gains)
+    assert abs(found.corner_brightness - 0.7) < 0.015
+
+
+def replace_cameras(dataset, cameras):
+    view = copy.copy(dataset)
+    view.cameras = list(cameras)
+    return view
+
+
+def test_the_appearance_is_set_from_the_measured_gains_and_held(realistic, monkeypatch):
+    import stg_train.trainer as trainer_module
+    from stg_train.self_calibration import GeometricMeasurement
+
+    dataset, _ = realistic
+    gains = np.exp(np.random.default_rng(1).normal(0, 0.1, (11, 3)))
+    measured = GeometricMeasurement((-0.29, -0.01), 0.001, 50_000, gains)
+    monkeypatch.setattr(trainer_module, "measure_rig_with_depth", lambda ds, cameras, depths, frames: measured)
+    trainer = Trainer(dataset, TrainConfig(iterations=6, num_points=500))
+    assert trainer.appearance is not None and abs(1 + sum(trainer.lens_falloff) - 0.7) < 0.04
+    trainer.train(progress=False)
+    expected = gains / gains.mean(0)
+    for c, row in zip(dataset.train_cameras, expected):
+        np.testing.assert_allclose(trainer.appearance.matrix[c].detach().numpy(), np.diag(row), atol=1e-6)  # held
+        assert not trainer.appearance.bias[c].detach().abs().any()
+    assert trainer.lens_falloff == (-0.29, -0.01)
+    assert trainer.remeasure_note.endswith("the cameras' colours set from the same measurement and held")
