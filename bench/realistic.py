@@ -218,8 +218,8 @@ def main() -> None:
                 if trainer.calibration is not None and trainer.calibration.estimate is not None:
                     row["measured_falloff"] = list(trainer.calibration.estimate.k)
                     row["chosen"] = {k: getattr(trainer.config, k) for k in ("lens_falloff", "appearance", "pose_refine")}
-                if trainer.falloff_note:
-                    row["falloff_remeasured"] = trainer.falloff_note
+                if trainer.remeasure_note:
+                    row["remeasured"] = trainer.remeasure_note
                 if trainer.appearance is not None:
                     summary = trainer.appearance.summary()
                     row["vignetting"] = np.mean([a["vignetting"] for a in summary], axis=0).tolist()
@@ -249,8 +249,8 @@ def main() -> None:
                 print(f"seed {seed} {capture_name:9s} {variant:10s} {figures}{pose}{extra}  ({row['gaussians']} Gaussians, "
                       f"{row['seconds']:.0f} s)", flush=True)
                 figures = "  ".join(f"{v}: {p:.2f} / {a:.2f} dB" for v, (p, a) in row["views_in_frame"].items())
-                if "falloff_remeasured" in row:
-                    print(f"{'':31s}{row['falloff_remeasured']}", flush=True)
+                if "remeasured" in row:
+                    print(f"{'':31s}{row['remeasured']}", flush=True)
                 print(f"{'':31s}in the model's frame: {figures}", flush=True)
                 figures = "  ".join(f"{v}: {p:.2f} / {a:.2f} dB (moved {row['alignment'][v][0]:.3f} deg, "
                                     f"{row['alignment'][v][1]:.4f})" for v, (p, a) in row["views_aligned"].items())
