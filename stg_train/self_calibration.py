@@ -265,24 +265,28 @@ class GeometricMeasurement(NamedTuple):
 OPAQUE, DEPTH_AGREEMENT = 0.99, 0.01
 
 
-def measure_rig_with_depth(dataset, cameras, depths: dict, frames, neighbours: int = 4,
+def measure_rig_with_depth(dataset, cameras, depths: dict, frames, neighbours: int = 4, max_side: int = 320,
                            seed: int = 0) -> GeometricMeasurement:
     """The training cameras' shared falloff and colour gains measured as measure_rig does, the pixel
     pairs matched by a model's geometry instead of the flow: depths[(c, f)] = (depth, alpha), (H, W)
     each at the camera's full size, the camera-space z and the opacity the model renders for training
     camera c at frame f through cameras[c] (the poses the model holds: refined, or stated). A pixel of
     c is matched to where its surface lands in each of c's `neighbours` nearest training cameras, where
-    both renders see that surface (OPAQUE, DEPTH_AGREEMENT). One round: the matches do not depend on the brightness.
-    Raises ValueError when fewer than MIN_PAIRS pixel pairs are found."""
+    both renders see that surface (OPAQUE, DEPTH_AGREEMENT), all of it on pictures and depths scaled to at
+    most `max_side` pixels on a side, as measure_rig's. One round: the matches do not depend on the
+    brightness. Raises ValueError when fewer than MIN_PAIRS pixel pairs are found."""
     cams = list(dataset.train_cameras)
+    size = {c: _measured_size(cameras[c], max_side) for c in cams}
+    scaled = {c: cameras[c].resized(*size[c]) for c in cams}
     rows = []
     for f in frames:
-        pictures = {c: dataset.image(c, f).astype(np.float32) for c in cams}
+        pictures = {c: _resized(dataset.image(c, f).astype(np.float32), size[c]) for c in cams}
+        seen = {c: tuple(_resized(np.asarray(m, np.float32), size[c]) for m in depths[c, f]) for c in cams}
         blurred = {c: cv2.GaussianBlur(p, (0, 0), 1.0) for c, p in pictures.items()}
         radial = {c: radial_grid(cameras[c], p.shape[:2]).astype(np.float32) for c, p in pictures.items()}
         for i, j in _neighbour_pairs(dataset, cams, neighbours):
             a, b = cams[i], cams[j]
-            match = _geometric_match(cameras[a], cameras[b], depths[a, f], depths[b, f], pictures[a])
+            match = _geometric_match(scaled[a], scaled[b], seen[a], seen[b], pictures[a])
             rows.append(_pixel_pairs(blurred[a], blurred[b], match, radial[a], radial[b], i, j))
     data = [np.concatenate(parts) for parts in zip(*rows)]
     if len(data[0]) < MIN_PAIRS:
@@ -294,6 +298,19 @@ def measure_rig_with_depth(dataset, cameras, depths: dict, frames, neighbours: i
         data = [d[keep] for d in data]
     gains, logv, error = _fit(*data, num_cameras=len(cams))
     return GeometricMeasurement(_as_polynomial(logv), float(2 * error * np.exp(logv.sum())), total, np.exp(gains))
+
+
+def _measured_size(camera, max_side: int) -> tuple[int, int]:
+    """(width, height) of a camera's pictures scaled to at most max_side pixels on a side."""
+    scale = min(1.0, max_side / max(camera.width, camera.height))
+    return max(1, round(camera.width * scale)), max(1, round(camera.height * scale))
+
+
+def _resized(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """`image` (h, w[, 3]) at size (width, height), by area averaging (as it is when that is its size)."""
+    if image.shape[1] == size[0] and image.shape[0] == size[1]:
+        return image
+    return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
 
 
 def _geometric_match(camera_a, camera_b, seen_a, seen_b, picture_a) -> _Match:

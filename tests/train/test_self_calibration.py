@@ -221,6 +221,10 @@ def test_the_models_geometry_measures_the_falloff_without_the_flows_bias(vignett
     assert abs(found.corner_brightness - 0.7) < abs(flow.corner_brightness - 0.7)
     none = measure_rig_with_depth(clean, clean.cameras, _true_depths(clean), (0, 1))
     assert abs(none.corner_brightness - 1.0) < 0.01
+    # large pictures are measured scaled down, as the flow's are: here to 80 x 60
+    small = measure_rig_with_depth(vignetting_only, vignetting_only.cameras, _true_depths(vignetting_only), (0, 1),
+                                   max_side=80)
+    assert abs(small.corner_brightness - 0.7) < 0.02 and small.pairs < found.pairs / 3
 
 
 def test_a_geometry_that_matches_nothing_is_refused(clean):
