@@ -37,7 +37,7 @@ from .losses import loss_fn
 from .metrics import psnr_of_mse
 from .params import LearningRates, STGParams, extent_of, position_lr, view_inputs
 from .pose_refine import PoseCorrections
-from .self_calibration import UNCERTAIN, calibrate_rig, measure_rig_with_depth, needs_calibration
+from .self_calibration import LENS_SPREAD, UNCERTAIN, calibrate_rig, measure_rig_with_depth, needs_calibration
 from .render import rasterize
 from .strategy import (DensityControl, GuidedSampling, GuidedSettings, Schedule, SeparateRotation, StepContext,
                        Strategy, Thresholds)
@@ -97,14 +97,28 @@ def frame_weights(num_frames: int, context: tuple[int, int], edge_weight: float)
     return None if np.all(p == p[0]) else p / p.sum()
 
 
-#: A run whose lens falloff was measured before training (TrainConfig.lens_falloff "auto") measures the rig
-#: again at this fraction of its steps, through the model's own geometry (Trainer.remeasure_rig): the
-#: falloff (the flow's matches leave the corners about 0.02 too bright) and, where an appearance is
+#: A run whose rig was measured before training ("auto" settings) measures it again at this fraction of its
+#: steps, through the model's own geometry (Trainer.remeasure_rig, remeasure_plan): the falloff (the flow's
+#: matches leave the corners about 0.02 too bright) where one was measured, and where an appearance is
 #: learned, the cameras' colour gains, which then hold its transforms (docs/training.md, "Real captures").
 REMEASURE_AT = 1 / 3
 #: The falloff so measured is trained on with unless its corner brightness differs from the flow's by
 #: more than this (a model whose geometry is not yet the scene's: a very short run).
 FALLOFF_AGREEMENT = 0.05
+#: ... and the colour gains held unless they differ from what the appearance has learned by more than
+#: this (RMS of the logs over cameras and channels; about 0.012 at that point on the realistic captures).
+GAIN_AGREEMENT = 0.05
+
+
+def remeasure_plan(falloff_auto: bool, config: TrainConfig, calibration) -> dict:
+    """What a run measures again through its model's geometry (Trainer.remeasure_rig), from what the rig's
+    measurement before training decided (calibrate_rig's config and RigCalibration; falloff_auto: the
+    falloff was "auto"): "falloff" where it was measured and trained with; "gains" where an appearance is
+    learned and the lenses were measured to share one falloff (the geometric fit assumes they do)."""
+    estimate = calibration.estimate
+    lenses_alike = estimate is not None and estimate.lens_spread <= LENS_SPREAD
+    return {"falloff": bool(falloff_auto and config.lens_falloff is not None),
+            "gains": bool(config.appearance is True and lenses_alike)}
 
 
 class Trainer:
@@ -134,9 +148,9 @@ class Trainer:
         if needs_calibration(config) and _state is None:
             measured = config.lens_falloff == "auto"
             config, self.calibration = calibrate_rig(dataset, config, progress=calibration_progress)
-            self.falloff_measured = measured and config.lens_falloff is not None
-        else:  # measured before training and to be measured again (remeasure_rig)
-            self.falloff_measured = bool((_state or {}).get("falloff_measured", False))
+            self.remeasure = remeasure_plan(measured, config, self.calibration)
+        else:  # what was measured before training is to be measured again (remeasure_rig)
+            self.remeasure = dict((_state or {}).get("remeasure") or {"falloff": False, "gains": False})
         self.remeasure_note: str | None = None  # what remeasure_rig found, for stg-train to say
         # (k1, k2) of a known vignetting, checked (a ValueError) before anything is computed
         self.lens_falloff = None if config.lens_falloff is None else known_falloff(config.lens_falloff)
@@ -331,7 +345,7 @@ class Trainer:
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         self._camera_step()
-        if self.falloff_measured and self.step == max(1, round(self.steps * REMEASURE_AT)):
+        if any(self.remeasure.values()) and self.step == max(1, round(self.steps * REMEASURE_AT)):
             self.remeasure_rig()
         return {"loss": loss.item(), "psnr": psnr_of_mse(max(mse, 1e-12))}
 
@@ -339,11 +353,11 @@ class Trainer:
     def remeasure_rig(self, frames=None) -> None:
         """Measure the rig again through the model's geometry (its depth rendered through the training
         cameras as it holds them, at `frames`: default the first and the middle frame, as before
-        training; self_calibration.measure_rig_with_depth): train on with that lens falloff unless it
-        cannot be measured or trusted, and then, where an appearance is learned, set each camera's
-        transform to its measured colour gains and hold it (hold_appearance). self.remeasure_note says
-        what was done."""
-        ds, before = self.dataset, self.lens_falloff
+        training; self_calibration.measure_rig_with_depth), as self.remeasure says (remeasure_plan):
+        train on with that lens falloff unless it cannot be measured or trusted, and set each camera's
+        appearance to its measured colour gains and hold it (hold_appearance) unless they stray from
+        what it has learned. self.remeasure_note says what was done."""
+        ds = self.dataset
         frames = tuple(sorted({0, ds.num_frames // 2})) if frames is None else tuple(frames)
         cameras = self.refined_cameras()
         depths = {}
@@ -351,25 +365,45 @@ class Trainer:
             for f in frames:
                 out = self.render(cameras[c], frame_time(ds, f))[1]
                 depths[c, f] = (out.depth.cpu().numpy(), out.alpha.cpu().numpy())
-        said = f"lens falloff measured again at step {self.step}, from the model's geometry"
+        said = f"the rig measured again at step {self.step}, from the model's geometry"
         try:
             found = measure_rig_with_depth(ds, cameras, depths, frames)
-            if found.corner_error > UNCERTAIN:
-                raise ValueError(f"uncertain (+-{found.corner_error:.3f})")
-            if abs(found.corner_brightness - (1 + before[0] + before[1])) > FALLOFF_AGREEMENT:
-                raise ValueError(f"its corner brightness {found.corner_brightness:.3f} disagrees with the flow's "
-                                 f"{1 + before[0] + before[1]:.3f}")
-            k = known_falloff(found.k)
+            notes = [self._take_falloff(found)] if self.remeasure.get("falloff") else []
+            if self.remeasure.get("gains") and self.appearance is not None:
+                notes.append(self._take_gains(found))
         except ValueError as e:
-            self.remeasure_note = f"{said}: {e}; training on with the flow's (K1 {before[0]:.3f}, K2 {before[1]:.3f})"
+            self.remeasure_note = f"{said}: {e}; training on as before"
             return
+        self.remeasure_note = f"{said}: " + "; ".join(notes)
+
+    def _take_falloff(self, found) -> str:
+        """Train on with the falloff of `found` (a GeometricMeasurement); ValueError when it is uncertain,
+        out of range or strays from the flow's (FALLOFF_AGREEMENT)."""
+        before = self.lens_falloff
+        if found.corner_error > UNCERTAIN:
+            raise ValueError(f"its falloff is uncertain (+-{found.corner_error:.3f})")
+        if abs(found.corner_brightness - (1 + before[0] + before[1])) > FALLOFF_AGREEMENT:
+            raise ValueError(f"its corner brightness {found.corner_brightness:.3f} disagrees with the flow's "
+                             f"{1 + before[0] + before[1]:.3f}")
+        k = known_falloff(found.k)
         self.lens_falloff, self._falloffs = k, {}
         self.config = replace(self.config, lens_falloff=k)
-        self.remeasure_note = (f"{said}: K1 {k[0]:.3f}, K2 {k[1]:.3f} (corner brightness "
-                               f"{found.corner_brightness:.3f}; was {1 + before[0] + before[1]:.3f} from the flow)")
-        if self.appearance is not None:
-            self.hold_appearance(found.gains)
-            self.remeasure_note += "; the cameras' colours set from the same measurement and held"
+        return (f"lens falloff K1 {k[0]:.3f}, K2 {k[1]:.3f} (corner brightness {found.corner_brightness:.3f}; was "
+                f"{1 + before[0] + before[1]:.3f} from the flow)")
+
+    def _take_gains(self, found) -> str:
+        """Hold the appearance at the colour gains of `found`, unless they stray from the diagonals it has
+        learned by more than GAIN_AGREEMENT (RMS of the logs, each channel's mean over the cameras
+        removed): a model whose geometry is not yet the scene's."""
+        learned = np.array([np.diag(a["matrix"]) for a in self.appearance.summary()])
+        if np.any(learned <= 0):
+            raise ValueError("the appearance learned so far has a colour gain at or below 0")
+        stray = np.log(found.gains) - np.log(learned)
+        stray = float(np.sqrt(np.mean((stray - stray.mean(0)) ** 2)))
+        if stray > GAIN_AGREEMENT:
+            raise ValueError(f"its colour gains differ from the ones learned by {100 * stray:.1f} % (RMS)")
+        self.hold_appearance(found.gains)
+        return f"the cameras' colours set from it and held (they differed from the ones learned by {100 * stray:.1f} %)"
 
     def hold_appearance(self, gains: np.ndarray) -> None:
         """Set each training camera's colour transform to its measured gains (CameraAppearance.set_gains;
@@ -430,7 +464,7 @@ class Trainer:
                 "strategies": [s.state_dict() for s in self.strategies], "box": self.box.tolist(),
                 "history": self.history, "seconds": self.seconds,
                 "bounds": None if self.dataset.bounds is None else self.dataset.bounds.tolist(),
-                "bounds_source": self.dataset.bounds_source, "falloff_measured": self.falloff_measured,
+                "bounds_source": self.dataset.bounds_source, "remeasure": self.remeasure,
                 "appearance": None if self.appearance is None else self.appearance.state_dict(),
                 "poses": None if self.poses is None else self.poses.state_dict(),
                 "camera_optimizer": None if self.camera_optimizer is None else self.camera_optimizer.state_dict(),

@@ -202,7 +202,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "captures whose cameras disagree in exposure and colour; the .stg holds the canonical "
                         "scene. Default: on when the training cameras' colour gains, measured before training "
                         "from what neighbouring cameras see of the same surfaces, differ by more than 3 %% "
-                        "(RMS), which stg-train prints; --no-appearance: never (docs/training.md)")
+                        "(RMS), which stg-train prints; when the rig was measured so, a third of the way through "
+                        "the gains are measured again through the model's own geometry, and set and hold each "
+                        "camera's transform; --no-appearance: never (docs/training.md)")
     p.add_argument("--pose-refine", action=argparse.BooleanOptionalAction, default=d.pose_refine,
                    help="refine each training camera's pose (a small rotation and translation) with the scene; "
                         "writes OUT/refined_cameras.json, and the .stg stores the refined cameras. Default: on "
@@ -219,8 +221,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "what neighbouring cameras see of the same surfaces at the same instant (seconds for the "
                         "demo's 12 cameras) and prints it; it trains without one where the cameras overlap too "
                         "little, their lenses differ or the corners are within 3 %% of the centre; a third of the "
-                        "way through, it is measured again through the model's own geometry, and with it the "
-                        "cameras' colours, which then hold the per-camera appearance (printed after training); "
+                        "way through, it is measured again through the model's own geometry (printed after "
+                        "training); "
                         "a resumed run keeps what its first run measured. 'none': no falloff "
                         "(docs/training.md)")
     p.add_argument("--viewer", nargs="?", type=port, const=8080, default=None, metavar="PORT",

@@ -248,13 +248,14 @@ def test_the_trainer_measures_the_falloff_again_a_third_of_the_way(vignetting_on
     assert seen == {"step": 2, "frames": (0, 1), "cameras": 2 * 11}
     assert trainer.config.lens_falloff == trainer.lens_falloff != flow_k
     assert abs(1 + sum(trainer.lens_falloff) - 0.7) < 0.01
-    assert trainer.remeasure_note.startswith("lens falloff measured again at step 2, from the model's geometry: K1")
+    assert trainer.remeasure_note.startswith("the rig measured again at step 2, from the model's geometry: lens falloff K1")
+    assert trainer.remeasure == {"falloff": True, "gains": False}  # no appearance learned: the colours agree
     resumed = Trainer.resume(vignetting_only, tmp_path / "checkpoint.pt")
-    assert resumed.lens_falloff == trainer.lens_falloff and resumed.falloff_measured
+    assert resumed.lens_falloff == trainer.lens_falloff and resumed.remeasure == trainer.remeasure
     seen.clear()
     given = Trainer(vignetting_only, TrainConfig(iterations=3, num_points=500, lens_falloff=(-0.3, 0.0)))
     given.train(progress=False)
-    assert not given.falloff_measured and given.remeasure_note is None and seen == {}  # a known falloff stays
+    assert not any(given.remeasure.values()) and given.remeasure_note is None and seen == {}  # a known falloff stays
 
 
 def test_a_measurement_again_that_disagrees_keeps_the_flows(vignetting_only, monkeypatch):
@@ -302,15 +303,51 @@ def test_the_appearance_is_set_from_the_measured_gains_and_held(realistic, monke
     from stg_train.self_calibration import GeometricMeasurement
 
     dataset, _ = realistic
-    gains = np.exp(np.random.default_rng(1).normal(0, 0.1, (11, 3)))
-    measured = GeometricMeasurement((-0.29, -0.01), 0.001, 50_000, gains)
-    monkeypatch.setattr(trainer_module, "measure_rig_with_depth", lambda ds, cameras, depths, frames: measured)
+    taken = {}
+    def measured(ds, cameras, depths, frames):  # the gains learned so far, each within 2 %
+        learned = np.array([np.diag(a["matrix"]) for a in trainer.appearance.summary()])
+        taken["gains"] = learned * np.exp(np.random.default_rng(1).uniform(-0.02, 0.02, learned.shape))
+        return GeometricMeasurement((-0.29, -0.01), 0.001, 50_000, taken["gains"])
+
+    monkeypatch.setattr(trainer_module, "measure_rig_with_depth", measured)
     trainer = Trainer(dataset, TrainConfig(iterations=6, num_points=500))
     assert trainer.appearance is not None and abs(1 + sum(trainer.lens_falloff) - 0.7) < 0.04
     trainer.train(progress=False)
-    expected = gains / gains.mean(0)
+    expected = taken["gains"] / taken["gains"].mean(0)
     for c, row in zip(dataset.train_cameras, expected):
         np.testing.assert_allclose(trainer.appearance.matrix[c].detach().numpy(), np.diag(row), atol=1e-6)  # held
         assert not trainer.appearance.bias[c].detach().abs().any()
     assert trainer.lens_falloff == (-0.29, -0.01)
-    assert trainer.remeasure_note.endswith("the cameras' colours set from the same measurement and held")
+    assert trainer.remeasure == {"falloff": True, "gains": True}
+    assert "lens falloff K1 -0.290" in trainer.remeasure_note
+    assert "the cameras' colours set from it and held" in trainer.remeasure_note
+
+
+def test_colours_without_a_falloff_are_measured_again_and_held(tmp_path, monkeypatch):
+    import stg_train.trainer as trainer_module
+    from stg_train.self_calibration import GeometricMeasurement
+
+    capture = CaptureModel(vignetting=0, noise=0, rotation_deg=0, translation=0)  # exposure and white balance alone
+    dataset, _ = _capture(tmp_path / "data", capture)
+    trainer = Trainer(dataset, TrainConfig(iterations=6, num_points=500))
+    assert trainer.lens_falloff is None and trainer.appearance is not None  # no falloff measured, colours learned
+    assert trainer.remeasure == {"falloff": False, "gains": True}
+    learned = {}
+    def measured(ds, cameras, depths, frames):  # the gains the appearance has learned, 2 % off for one camera
+        gains = np.array([np.diag(a["matrix"]) for a in trainer.appearance.summary()])
+        gains[0] *= 1.02
+        learned["gains"] = gains
+        return GeometricMeasurement((0.0, 0.0), 0.001, 50_000, gains)
+
+    monkeypatch.setattr(trainer_module, "measure_rig_with_depth", measured)
+    trainer.train(progress=False)
+    expected = learned["gains"] / learned["gains"].mean(0)
+    for c, row in zip(dataset.train_cameras, expected):
+        np.testing.assert_allclose(np.diag(trainer.appearance.matrix[c].detach().numpy()), row, atol=1e-6)
+    assert trainer.lens_falloff is None and "colours set from it and held" in trainer.remeasure_note
+    # gains far from what was learned (a model whose geometry is not the scene's) are not taken
+    monkeypatch.setattr(trainer_module, "measure_rig_with_depth",
+                        lambda *args: GeometricMeasurement((0.0, 0.0), 0.001, 50_000, np.exp(np.eye(11, 3))))
+    other = Trainer(dataset, TrainConfig(iterations=6, num_points=500))
+    other.train(progress=False)
+    assert "differ from the ones learned" in other.remeasure_note and other.camera_optimizer.param_groups[0]["lr"] > 0
