@@ -368,12 +368,19 @@ class Trainer:
         said = f"the rig measured again at step {self.step}, from the model's geometry"
         try:
             found = measure_rig_with_depth(ds, cameras, depths, frames)
-            notes = [self._take_falloff(found)] if self.remeasure.get("falloff") else []
-            if self.remeasure.get("gains") and self.appearance is not None:
-                notes.append(self._take_gains(found))
         except ValueError as e:
             self.remeasure_note = f"{said}: {e}; training on as before"
             return
+        notes = []
+        for part, take in (("falloff", self._take_falloff), ("gains", self._take_gains)):
+            if not self.remeasure.get(part) or (part == "gains" and self.appearance is None):
+                continue
+            try:
+                notes.append(take(found))
+            except ValueError as e:
+                notes.append(f"{e}: not taken")
+                if part == "falloff":  # a geometry that gets the falloff wrong is not trusted with the colours
+                    break
         self.remeasure_note = f"{said}: " + "; ".join(notes)
 
     def _take_falloff(self, found) -> str:
