@@ -25,6 +25,7 @@ import numpy as np
 from stg_runtime.camera import Camera
 
 from .capture import corrected
+from .metrics import affine_moments
 
 #: Central-difference step of the parameters, in pixels that it moves the picture by (the step in
 #: radians, and in units of the scene's depth, is this over the focal length): a secant over half a pixel
@@ -85,10 +86,11 @@ def _render(render, camera: Camera, x: np.ndarray, depth: float, frame: int) -> 
 
 
 def _affine(renders: list, targets: list) -> np.ndarray:
-    """(4, 3) affine colour map A, (rgb, 1) @ A ~ picture, least squares over every picture's pixels."""
-    z = np.concatenate([np.concatenate([r, np.ones((len(r), 1))], 1) for r in renders])
-    y = np.concatenate([t for _, t in targets])
-    return np.linalg.lstsq(z.T @ z + 1e-9 * np.eye(4), z.T @ y, rcond=None)[0]
+    """(4, 3) affine colour map A, (rgb, 1) @ A ~ picture, least squares over every picture's pixels (the
+    fit of the colour-aligned PSNR, metrics.affine_moments)."""
+    moments = [affine_moments(r, t) for r, (_, t) in zip(renders, targets)]
+    zz, zy = sum(m[0] for m in moments), sum(m[1] for m in moments)
+    return np.linalg.lstsq(zz + 1e-9 * np.eye(4), zy, rcond=None)[0]
 
 
 def _mapped(image: np.ndarray, colour_map: np.ndarray | None) -> np.ndarray:

@@ -134,7 +134,7 @@ def measure_rig(dataset, frames=None, neighbours: int = 4, rounds: int = 3, max_
     cams = list(dataset.train_cameras)
     if len(cams) < 2:
         raise ValueError(f"measuring the rig needs two or more training cameras, the dataset has {len(cams)}")
-    frames = tuple(sorted({0, dataset.num_frames // 2})) if frames is None else tuple(int(f) for f in frames)
+    frames = measured_frames(dataset) if frames is None else tuple(int(f) for f in frames)
     scale = min(1.0, max_side / max(dataset.width, dataset.height))
     pictures = {(c, f): _scaled(dataset.image(c, f), scale) for c in cams for f in frames}
     # the colours compared, blurred once: a sub-pixel misalignment of the flow then matters less
@@ -159,14 +159,7 @@ def measure_rig(dataset, frames=None, neighbours: int = 4, rounds: int = 3, max_
                 done += 1
                 if progress is not None:
                     progress(done, work)
-        data = [np.concatenate(parts) for parts in zip(*rows)]
-        total = len(data[0])
-        if total < MIN_PAIRS:
-            raise ValueError(f"the training cameras overlap too little to measure them "
-                             f"({total} pixel pairs, at least {MIN_PAIRS} needed)")
-        if total > MAX_PAIRS:
-            keep = rng.choice(total, MAX_PAIRS, replace=False)
-            data = [d[keep] for d in data]
+        data, total = _pooled(rows, rng, "the training cameras overlap too little to measure them")
         gains, logv, error = _fit(*data, num_cameras=len(cams))
     subset = rng.permutation(len(data[0]))[:MAX_CAMERA_PAIRS]
     corners = _camera_corners(*[d[subset] for d in data], num_cameras=len(cams))
@@ -276,41 +269,21 @@ def measure_rig_with_depth(dataset, cameras, depths: dict, frames, neighbours: i
     most `max_side` pixels on a side, as measure_rig's. One round: the matches do not depend on the
     brightness. Raises ValueError when fewer than MIN_PAIRS pixel pairs are found."""
     cams = list(dataset.train_cameras)
-    size = {c: _measured_size(cameras[c], max_side) for c in cams}
-    scaled = {c: cameras[c].resized(*size[c]) for c in cams}
+    scale = {c: min(1.0, max_side / max(cameras[c].width, cameras[c].height)) for c in cams}
     rows = []
     for f in frames:
-        pictures = {c: _resized(dataset.image(c, f).astype(np.float32), size[c]) for c in cams}
-        seen = {c: tuple(_resized(np.asarray(m, np.float32), size[c]) for m in depths[c, f]) for c in cams}
+        pictures = {c: _scaled(dataset.image(c, f).astype(np.float32), scale[c]) for c in cams}
+        seen = {c: tuple(_scaled(np.asarray(m, np.float32), scale[c]) for m in depths[c, f]) for c in cams}
         blurred = {c: cv2.GaussianBlur(p, (0, 0), 1.0) for c, p in pictures.items()}
         radial = {c: radial_grid(cameras[c], p.shape[:2]).astype(np.float32) for c, p in pictures.items()}
+        scaled = {c: cameras[c].resized(p.shape[1], p.shape[0]) for c, p in pictures.items()}
         for i, j in _neighbour_pairs(dataset, cams, neighbours):
             a, b = cams[i], cams[j]
             match = _geometric_match(scaled[a], scaled[b], seen[a], seen[b], pictures[a])
             rows.append(_pixel_pairs(blurred[a], blurred[b], match, radial[a], radial[b], i, j))
-    data = [np.concatenate(parts) for parts in zip(*rows)]
-    if len(data[0]) < MIN_PAIRS:
-        raise ValueError(f"the model's geometry matches too few pixels ({len(data[0])} pixel pairs, at least "
-                         f"{MIN_PAIRS} needed)")
-    total = len(data[0])
-    if total > MAX_PAIRS:
-        keep = np.random.default_rng(seed).choice(total, MAX_PAIRS, replace=False)
-        data = [d[keep] for d in data]
+    data, total = _pooled(rows, np.random.default_rng(seed), "the model's geometry matches too few pixels")
     gains, logv, error = _fit(*data, num_cameras=len(cams))
     return GeometricMeasurement(_as_polynomial(logv), float(2 * error * np.exp(logv.sum())), total, np.exp(gains))
-
-
-def _measured_size(camera, max_side: int) -> tuple[int, int]:
-    """(width, height) of a camera's pictures scaled to at most max_side pixels on a side."""
-    scale = min(1.0, max_side / max(camera.width, camera.height))
-    return max(1, round(camera.width * scale)), max(1, round(camera.height * scale))
-
-
-def _resized(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """`image` (h, w[, 3]) at size (width, height), by area averaging (as it is when that is its size)."""
-    if image.shape[1] == size[0] and image.shape[0] == size[1]:
-        return image
-    return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
 
 
 def _geometric_match(camera_a, camera_b, seen_a, seen_b, picture_a) -> _Match:
@@ -353,8 +326,26 @@ def _decide_falloff(estimate: RigMeasurement) -> tuple[tuple[float, float] | Non
     return k, f"{said}: training with it"
 
 
+def measured_frames(dataset) -> tuple[int, ...]:
+    """The frames the rig is measured at by default: the first and the middle one."""
+    return tuple(sorted({0, dataset.num_frames // 2}))
+
+
+def _pooled(rows: list, rng: np.random.Generator, too_few: str) -> tuple[list, int]:
+    """(the pixel pairs of every camera pair (_pixel_pairs rows) together, at most MAX_PAIRS of them drawn
+    by `rng`; how many there were). Raises ValueError(too_few ...) below MIN_PAIRS."""
+    data = [np.concatenate(parts) for parts in zip(*rows)]
+    total = len(data[0])
+    if total < MIN_PAIRS:
+        raise ValueError(f"{too_few} ({total} pixel pairs, at least {MIN_PAIRS} needed)")
+    if total > MAX_PAIRS:
+        keep = rng.choice(total, MAX_PAIRS, replace=False)
+        data = [d[keep] for d in data]
+    return data, total
+
+
 def _scaled(image: np.ndarray, scale: float) -> np.ndarray:
-    """(H, W, 3) float32 picture resized by `scale` (area averaging)."""
+    """(H, W[, 3]) float32 picture (or depth, or opacity) resized by `scale` (area averaging)."""
     if scale == 1.0:
         return image.astype(np.float32)
     h, w = image.shape[:2]

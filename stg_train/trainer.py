@@ -37,7 +37,8 @@ from .losses import loss_fn
 from .metrics import psnr_of_mse
 from .params import LearningRates, STGParams, extent_of, position_lr, view_inputs
 from .pose_refine import PoseCorrections
-from .self_calibration import LENS_SPREAD, UNCERTAIN, calibrate_rig, measure_rig_with_depth, needs_calibration
+from .self_calibration import (LENS_SPREAD, UNCERTAIN, calibrate_rig, measure_rig_with_depth, measured_frames,
+                               needs_calibration)
 from .render import rasterize
 from .strategy import (DensityControl, GuidedSampling, GuidedSettings, Schedule, SeparateRotation, StepContext,
                        Strategy, Thresholds)
@@ -358,7 +359,7 @@ class Trainer:
         appearance to its measured colour gains and hold it (hold_appearance) unless they stray from
         what it has learned. self.remeasure_note says what was done."""
         ds = self.dataset
-        frames = tuple(sorted({0, ds.num_frames // 2})) if frames is None else tuple(frames)
+        frames = measured_frames(ds) if frames is None else tuple(frames)
         cameras = self.refined_cameras()
         depths = {}
         for c in ds.train_cameras:
@@ -372,31 +373,33 @@ class Trainer:
             self.remeasure_note = f"{said}: {e}; training on as before"
             return
         notes = []
-        for part, take in (("falloff", self._take_falloff), ("gains", self._take_gains)):
-            if not self.remeasure.get(part) or (part == "gains" and self.appearance is None):
-                continue
-            try:
-                notes.append(take(found))
-            except ValueError as e:
-                notes.append(f"{e}: not taken")
-                if part == "falloff":  # a geometry that gets the falloff wrong is not trusted with the colours
-                    break
+        try:
+            if self.remeasure.get("falloff"):
+                notes.append(self._take_falloff(found))
+        except ValueError as e:  # a geometry that gets the falloff wrong is not trusted with the colours
+            notes.append(f"{e}: not taken")
+        else:
+            if self.remeasure.get("gains") and self.appearance is not None:
+                try:
+                    notes.append(self._take_gains(found))
+                except ValueError as e:
+                    notes.append(f"{e}: not taken")
         self.remeasure_note = f"{said}: " + "; ".join(notes)
 
     def _take_falloff(self, found) -> str:
         """Train on with the falloff of `found` (a GeometricMeasurement); ValueError when it is uncertain,
         out of range or strays from the flow's (FALLOFF_AGREEMENT)."""
-        before = self.lens_falloff
+        flow_corner = 1 + sum(self.lens_falloff)  # the corner brightness measured before training
         if found.corner_error > UNCERTAIN:
             raise ValueError(f"its falloff is uncertain (+-{found.corner_error:.3f})")
-        if abs(found.corner_brightness - (1 + before[0] + before[1])) > FALLOFF_AGREEMENT:
+        if abs(found.corner_brightness - flow_corner) > FALLOFF_AGREEMENT:
             raise ValueError(f"its corner brightness {found.corner_brightness:.3f} disagrees with the flow's "
-                             f"{1 + before[0] + before[1]:.3f}")
+                             f"{flow_corner:.3f}")
         k = known_falloff(found.k)
         self.lens_falloff, self._falloffs = k, {}
         self.config = replace(self.config, lens_falloff=k)
         return (f"lens falloff K1 {k[0]:.3f}, K2 {k[1]:.3f} (corner brightness {found.corner_brightness:.3f}; was "
-                f"{1 + before[0] + before[1]:.3f} from the flow)")
+                f"{flow_corner:.3f} from the flow)")
 
     def _take_gains(self, found) -> str:
         """Hold the appearance at the colour gains of `found`, unless they stray from the diagonals it has
