@@ -1,8 +1,9 @@
 """A lens's radial brightness falloff (vignetting), `1 + k1 s + k2 s^2` with s the squared distance from
 the principal point over its value at the farthest image corner (appearance.radial): the polynomial
 once, for the falloff the cameras learn (stg_train.appearance) and the one given as known
-(TrainConfig.lens_falloff, `stg-train --lens-falloff`), s over a picture's pixels (`radial_grid`), and
-the range a known one must keep. Imports nothing at load (numpy only inside radial_grid), so the
+(TrainConfig.lens_falloff, `stg-train --lens-falloff`), s over a picture's pixels (`radial_grid`), a
+picture's brightness against the canonical scene's (`picture_brightness`), and the range a known one
+must keep. Imports nothing at load (numpy only inside radial_grid), so the
 command line checks a falloff before torch loads."""
 from __future__ import annotations
 
@@ -31,6 +32,18 @@ def radial_grid(camera, shape: tuple[int, int] | None = None):
     u = (np.arange(w) + 0.5) * (camera.width / w) - camera.cx
     v = (np.arange(h) + 0.5) * (camera.height / h) - camera.cy
     return (u[None, :] ** 2 + v[:, None] ** 2) / corner_r2(camera)
+
+
+def picture_brightness(camera, falloff=None, gains=None):
+    """(H, W, 3) float32 numpy array: how bright a camera's picture is against the canonical scene's, per
+    pixel and channel: its lens falloff 1 + k1 s + k2 s^2 (falloff (k1, k2); None: none) times its colour
+    gains ((3,); None: 1). A picture divided by it is the scene as the canonical model renders it."""
+    import numpy as np
+
+    s = radial_grid(camera)
+    brightness = np.ones_like(s) if falloff is None else lens_brightness(s, falloff)
+    out = np.repeat(brightness[..., None], 3, axis=-1)
+    return (out if gains is None else out * np.asarray(gains, np.float64)).astype(np.float32)
 
 
 def known_falloff(k) -> tuple[float, float]:

@@ -28,7 +28,7 @@ from stg_runtime.camera import Camera
 from stg_runtime.progress import Progress
 
 from .appearance import CameraAppearance, radial
-from .lens import known_falloff, lens_brightness
+from .lens import known_falloff, lens_brightness, picture_brightness
 from .data.bounds import typical_depth
 from .data.flow import initial_velocity
 from .config import MOTION_INITS, TrainConfig  # noqa: F401 (TrainConfig's home is config; re-exported)
@@ -294,10 +294,30 @@ class Trainer:
 
     def _initial_points(self, progress) -> InitialPoints:
         """The initial points, from the frames the dataset shows (not its context frames: those only
-        refine what the shown frames start), their t_center normalised over those (frame_time)."""
+        refine what the shown frames start), their t_center normalised over those (frame_time), and from
+        those pictures as the canonical scene would look (initial_brightness): the view volume's depth
+        search compares the cameras' colours, which their exposures, white balances and vignetting set
+        apart (docs/training.md, "Real captures")."""
         config = self.config
-        return initial_points(shown_frames(self.dataset), config.init, config.num_points, self.rng,
-                              every=config.init_every, depth_candidates=config.depth_candidates, progress=progress)
+        shown = shown_frames(self.dataset)
+        brightness = self.initial_brightness()
+        return initial_points(shown.corrected(brightness) if brightness else shown, config.init, config.num_points,
+                              self.rng, every=config.init_every, depth_candidates=config.depth_candidates,
+                              progress=progress)
+
+    def initial_brightness(self) -> dict[int, np.ndarray]:
+        """{training camera index: (H, W, 3) brightness of its pictures against the canonical scene}
+        (lens.picture_brightness), which the initial points' pictures are divided by: the lens falloff
+        trained with, times the camera's colour gains where an appearance is learned and the rig's
+        measurement before training found them (self.calibration); {} when there is neither (a clean
+        capture: its initial points are as they were)."""
+        estimate = None if self.calibration is None else self.calibration.estimate
+        gains = estimate.gains if estimate is not None and self.config.appearance is True else None
+        if self.lens_falloff is None and gains is None:
+            return {}
+        train = self.dataset.train_cameras
+        return {c: picture_brightness(self.dataset.cameras[c], self.lens_falloff, None if gains is None else gains[n])
+                for n, c in enumerate(train)}
 
     # -- one step -------------------------------------------------------------------------------------
     def sample_frame(self) -> int:

@@ -38,6 +38,7 @@ class Dataset:
 
     start_frame = 0
     context_frames = (0, 0)
+    brightness: dict | None = None  # see `corrected`
 
     def __init__(self, cameras: Sequence[Camera], frames, fps: float, test_cameras: Iterable[int] = (),
                  bounds: np.ndarray | None = None, scene_bounds=None, path: str | os.PathLike | None = None,
@@ -104,8 +105,11 @@ class Dataset:
         return np.array(self.frames[camera_index, frame_index])
 
     def image(self, camera_index: int, frame_index: int) -> np.ndarray:
-        """(H, W, 3) float32 RGB in [0, 1]: `frame` / 255."""
-        return self.frame(camera_index, frame_index).astype(np.float32) / 255.0
+        """(H, W, 3) float32 RGB in [0, 1]: `frame` / 255 (in a `corrected` view, divided by the camera's
+        brightness and clipped to [0, 1])."""
+        image = self.frame(camera_index, frame_index).astype(np.float32) / 255.0
+        brightness = None if self.brightness is None else self.brightness.get(camera_index)
+        return image if brightness is None else np.clip(image / brightness, 0.0, 1.0)
 
     def frame_range(self, start: int, count: int, context: tuple[int, int] = (0, 0)) -> "Dataset":
         """A view of frames [start, start + count) (a time segment): same cameras and settings, the
@@ -138,6 +142,15 @@ class Dataset:
             raise ValueError(f"bounds of shape {bounds.shape} do not match {self.num_cameras} cameras x (near, far)")
         view = copy.copy(self)
         view.bounds, view.bounds_source = bounds, source
+        return view
+
+    def corrected(self, brightness: dict) -> "Dataset":
+        """A view whose `image` of camera c is divided by brightness[c] ((H, W, 3) or (3,) float32: the
+        camera's lens falloff times its colour gains, stg_train.lens.picture_brightness), so that its
+        pictures agree with each other as the canonical scene would (cameras not in `brightness` as they
+        are); `frame` still gives the pictures as captured. This dataset is left as it is."""
+        view = copy.copy(self)
+        view.brightness = {int(c): np.asarray(b, np.float32) for c, b in brightness.items()}
         return view
 
     def chunked(self, spans=None, show_progress: bool | None = None) -> "Dataset":

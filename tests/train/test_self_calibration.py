@@ -351,3 +351,52 @@ def test_colours_without_a_falloff_are_measured_again_and_held(tmp_path, monkeyp
     other = Trainer(dataset, TrainConfig(iterations=6, num_points=500))
     other.train(progress=False)
     assert "differ from the ones learned" in other.remeasure_note and other.camera_optimizer.param_groups[0]["lr"] > 0
+
+
+def _on_the_surface(dataset, cameras, points, tolerance: float = 0.02) -> float:
+    """The share of initial points within `tolerance` (relative depth) of the surface that one of
+    `cameras` (true poses) sees through the pixel the point falls in, at the point's frame."""
+    scene = SyntheticScene(seed=0, duration=1.0)
+    frames = np.round(points.t_center * dataset.num_frames).astype(int)
+    best = np.full(len(points.xyz), np.inf)
+    for j in np.unique(frames):
+        at = frames == j
+        for c in dataset.train_cameras:
+            camera = cameras[c]
+            true_depth = scene.render(camera, j / dataset.fps, return_depth=True)[1]
+            uv, z = camera.project(points.xyz[at])
+            inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+            u, v = uv[inside].astype(int).T
+            error = np.full(at.sum(), np.inf)
+            error[inside] = np.abs(z[inside] / true_depth[v, u] - 1)
+            best[at] = np.minimum(best[at], error)
+    return float((best < tolerance).mean())
+
+
+def test_the_initial_points_match_the_pictures_as_the_canonical_scene_would_look(realistic, clean):
+    from stg_train.data.points import initial_points
+    from stg_train.lens import lens_brightness
+
+    dataset, _ = realistic
+    trainer = Trainer(dataset, TrainConfig(iterations=3, num_points=500))
+    brightness = trainer.initial_brightness()  # the falloff trained with, times the gains measured
+    gains = trainer.calibration.estimate.gains
+    assert sorted(brightness) == dataset.train_cameras
+    for n, c in enumerate(dataset.train_cameras):
+        camera = dataset.cameras[c]
+        np.testing.assert_allclose(brightness[c][int(camera.cy), int(camera.cx)], gains[n], rtol=0.01)
+        np.testing.assert_allclose(brightness[c][0, 0], lens_brightness(1.0, trainer.lens_falloff) * gains[n], rtol=0.02)
+    corrected = dataset.corrected(brightness)
+    c = dataset.train_cameras[0]
+    np.testing.assert_array_equal(corrected.frame(c, 1), dataset.frame(c, 1))  # the pictures trained on stay
+    np.testing.assert_allclose(corrected.image(c, 1), np.clip(dataset.image(c, 1) / brightness[c], 0, 1))
+    np.testing.assert_array_equal(corrected.image(0, 1), dataset.image(0, 1))  # the held-out camera, as it is
+    # the view volume's depth search: cameras that disagree in colour and vignette pick wrong depths
+    as_captured = initial_points(dataset, "volume", 3000, np.random.default_rng(0), depth_candidates=64)
+    as_canonical = initial_points(corrected, "volume", 3000, np.random.default_rng(0), depth_candidates=64)
+    truth = _true_cameras(dataset)
+    before, after = _on_the_surface(dataset, truth, as_captured), _on_the_surface(dataset, truth, as_canonical)
+    reference = _on_the_surface(clean, clean.cameras, initial_points(clean, "volume", 3000, np.random.default_rng(0),
+                                                                      depth_candidates=64))
+    assert after > before + 0.15 and after > reference - 0.15, (before, after, reference)
+    assert Trainer(clean, TrainConfig(iterations=3, num_points=500)).initial_brightness() == {}  # nothing measured
