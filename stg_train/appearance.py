@@ -77,6 +77,19 @@ class CameraAppearance:
         return out
 
     @torch.no_grad()
+    def undo(self, image: Tensor, camera_index: int, camera: Camera) -> Tensor:
+        """(H, W, 3) rgb that `camera` (dataset index camera_index) recorded, as the canonical scene would
+        look: the inverse of `apply` (its falloff divided out, its transform inverted), so that
+        apply(undo(y)) == y; unchanged for other cameras. Not differentiable."""
+        if camera_index not in self.matrix:
+            return image
+        if self.vignetting:
+            if camera_index not in self._radial:
+                self._radial[camera_index] = radial(camera, image.device, image.dtype)
+            image = image / lens_brightness(self._radial[camera_index], self.falloff[camera_index])[..., None]
+        return (image - self.bias[camera_index]) @ torch.linalg.inv(self.matrix[camera_index]).T
+
+    @torch.no_grad()
     def center(self) -> None:
         """Project the transforms so that their mean over the training cameras is the identity."""
         if not self.train_cameras:

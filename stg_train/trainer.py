@@ -292,6 +292,19 @@ class Trainer:
         frame_u8 = torch.from_numpy(self.dataset.frame(camera_index, frame))
         return frame_u8.to(self.device, non_blocking=True).float() / 255.0
 
+    @torch.no_grad()
+    def canonical_truth(self, camera_index: int, frame: int) -> Tensor:
+        """(H, W, 3) ground truth of a camera as the canonical scene would look: its lens falloff
+        (TrainConfig.lens_falloff) divided out and its appearance undone (CameraAppearance.undo), so that
+        it compares with the canonical render (what guided sampling compares, strategy.guided); the
+        ground truth itself where the cameras are not modelled."""
+        gt = self.ground_truth(camera_index, frame)
+        if self.lens_falloff is not None and camera_index in self.dataset.train_cameras:
+            gt = gt / self._lens_falloff(camera_index)[..., None]
+        if self.appearance is not None:
+            gt = self.appearance.undo(gt, camera_index, self.dataset.cameras[camera_index])
+        return gt
+
     def _initial_points(self, progress) -> InitialPoints:
         """The initial points, from the frames the dataset shows (not its context frames: those only
         refine what the shown frames start), their t_center normalised over those (frame_time), and from
@@ -354,7 +367,7 @@ class Trainer:
         img = torch.stack(images)
         gt = torch.stack([self.ground_truth(ci, frame) for ci in views])
         context = StepContext(ds, frame, tau, renders,
-                              lambda ci, t: self.render(ds.cameras[ci], t, rays=self.rays(ci)), self.ground_truth)
+                              lambda ci, t: self.render(ds.cameras[ci], t, rays=self.rays(ci)), self.canonical_truth)
         for strategy in self.strategies:
             strategy.step_pre_backward(self.params, self.optimizer, self.step, context)
         loss = loss_fn(img, gt)

@@ -25,7 +25,9 @@ class StepContext(NamedTuple):
     renders: [(camera, stg_train.render.RenderOutput)] of the step's batch (their means2d carry the
     screen-space gradients after backward); render(camera_index, tau) -> (rgb (H, W, 3), RenderOutput)
     of the current parameters (call it under torch.no_grad()); ground_truth(camera_index, frame) ->
-    (H, W, 3) float in [0, 1] on the device.
+    (H, W, 3) float on the device: the camera's picture as the canonical scene would look (what render
+    gives at a perfect fit: the camera's lens falloff and appearance undone, Trainer.canonical_truth;
+    the picture itself, in [0, 1], where the cameras are not modelled).
     """
 
     dataset: object

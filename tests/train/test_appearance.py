@@ -96,6 +96,35 @@ def test_appearance_leaves_other_cameras_and_vignettes_around_the_principal_poin
     np.testing.assert_allclose(out, effects.apply(image.numpy(), cam), atol=1e-6)  # the capture's own model
 
 
+def test_undo_inverts_the_transform_and_the_falloff():
+    cam = Camera(40, 40, 16, 12, 32, 24, np.eye(4))
+    appearance = CameraAppearance(3, [1, 2], "cpu", vignetting=True)
+    with torch.no_grad():
+        appearance.matrix[1].copy_(torch.tensor([[1.1, 0.05, 0.0], [0.0, 0.9, 0.02], [0.03, 0.0, 1.05]]))
+        appearance.bias[1].copy_(torch.tensor([0.01, -0.02, 0.0]))
+        appearance.falloff[1].copy_(torch.tensor([-0.3, 0.05]))
+    recorded = torch.rand(24, 32, 3, generator=torch.Generator().manual_seed(0))
+    canonical = appearance.undo(recorded, 1, cam)
+    assert not torch.allclose(canonical, recorded, atol=0.01)
+    torch.testing.assert_close(appearance.apply(canonical, 1, cam), recorded, atol=1e-5, rtol=1e-5)
+    assert appearance.undo(recorded, 0, cam) is recorded  # held out
+
+
+def test_guided_sampling_compares_the_pictures_as_the_canonical_scene_would_look(gain_capture):
+    dataset = load_n3v(gain_capture, prefer_png=True)
+    trainer = Trainer(dataset, TrainConfig(iterations=3, num_points=300, appearance=True, lens_falloff=(-0.3, 0.0)))
+    ci = dataset.train_cameras[0]
+    with torch.no_grad():
+        trainer.appearance.matrix[ci].mul_(1.2)
+        trainer.appearance.bias[ci].add_(0.02)
+    canonical = trainer.canonical_truth(ci, 2)
+    recorded = trainer.appearance.apply(canonical, ci, dataset.cameras[ci]) * trainer._lens_falloff(ci)[..., None]
+    torch.testing.assert_close(recorded, trainer.ground_truth(ci, 2), atol=1e-5, rtol=1e-5)
+    assert (canonical - trainer.ground_truth(ci, 2)).abs().mean() > 0.02
+    plain = Trainer(dataset, TrainConfig(iterations=3, num_points=300, appearance=False, lens_falloff=None))
+    torch.testing.assert_close(plain.canonical_truth(ci, 2), plain.ground_truth(ci, 2), atol=0, rtol=0)
+
+
 def _random_gaussians(n: int, seed: int = 0) -> Gaussians:
     rng = np.random.default_rng(seed)
     means = torch.tensor(rng.uniform([-2, -1.5, 4], [2, 1.5, 7], (n, 3)), dtype=torch.float32)
