@@ -50,7 +50,7 @@ from stg_train.data import load_n3v
 from stg_train.data.bounds import typical_depth
 from stg_train.data.dataset import Dataset
 from stg_train.metrics import evaluate_images
-from stg_train.pose_align import align_pose
+from stg_train.pose_align import align_view
 from stg_train.pipeline import DEMO_SCENE
 from stg_train.synthetic import NOVEL_VIEWS, SyntheticScene, novel_view_dataset, write_n3v
 from stg_train.trainer import Trainer, TrainConfig
@@ -124,18 +124,14 @@ def in_frame(views: dict[str, Dataset], trainer: Trainer, data: Dataset, record:
             for name, ds in views.items()}
 
 
-#: Frames of a view that its pose is aligned on (spread over the video), and Gauss-Newton steps.
-ALIGN_FRAMES, ALIGN_STEPS = 4, 3
-
-
 def pose_aligned(views: dict[str, Dataset], trainer: Trainer, depth: float) -> tuple[dict[str, Dataset], dict]:
     """(`views` each with its pose aligned to its own pictures against the trained model's canonical
-    renders (pose_align.align_pose, with an affine colour map), {view: (degrees, world units) moved})."""
+    renders (pose_align.align_view, as `stg-eval --align-poses`: 4 frames, an affine colour map),
+    {view: (degrees, world units) moved})."""
     out, moved = {}, {}
     for name, ds in views.items():
-        frames = np.linspace(0, ds.num_frames - 1, ALIGN_FRAMES).round().astype(int)
-        result = align_pose(lambda camera, j: trainer.render_numpy(camera, j / ds.num_frames), ds.cameras[0],
-                            [(int(j), ds.image(0, int(j))) for j in frames], depth, iterations=ALIGN_STEPS)
+        result = align_view(lambda camera, j: trainer.render_numpy(camera, j / ds.num_frames), ds.cameras[0],
+                            lambda j: ds.image(0, j), range(ds.num_frames), depth)
         out[name] = Dataset([result.camera], ds.frames, ds.fps, test_cameras=[0])
         moved[name] = (result.rotation_deg, result.shift)
     return out, moved

@@ -538,6 +538,36 @@ def check_cameras(player: Player, dataset, name, tolerance: float = 1e-3) -> Non
                             f"focal length by {100 * focal:.3g}%); {hint}")
 
 
+def align_heldout(player: Player, dataset, frames: Sequence[int], quiet: bool = False):
+    """(dataset with each held-out camera's pose aligned to its pictures, {camera name: PoseAlignment}):
+    pose_align.align_view against the model `player` plays, on ALIGN_FRAMES of `frames` (dataset frame
+    indices), the shift counted in units of the scene's depth (data.bounds.typical_depth of the training
+    cameras; their extent, params.extent_of, where the dataset has no bounds). For a held-out camera
+    calibrated no better than the training cameras, or a model whose refined poses moved its frame:
+    the view is then scored on what the model shows rather than on where the calibration puts it. A
+    progress bar on stderr unless quiet."""
+    from stg_runtime.progress import Progress
+
+    from .data.bounds import typical_depth
+    from .params import extent_of
+    from .pose_align import ALIGN_FRAMES, align_view, renders_at_most
+
+    train = [dataset.cameras[i] for i in dataset.train_cameras]
+    depth = typical_depth(None if dataset.bounds is None else dataset.bounds[dataset.train_cameras]) or extent_of(train)
+    start = getattr(dataset, "start_frame", 0)
+    cameras, moved = list(dataset.cameras), {}
+    total = len(dataset.test_cameras) * renders_at_most(min(ALIGN_FRAMES, len(frames)))
+    with Progress(total=total, desc="aligning the held-out poses", enabled=not quiet) as bar:
+        def render(camera, j):
+            bar.update()
+            return player.render(camera, (start + j) / dataset.fps)
+
+        for ci in dataset.test_cameras:
+            result = align_view(render, cameras[ci], lambda j: dataset.image(ci, j), frames, depth)
+            cameras[ci], moved[cameras[ci].name] = result.camera, result
+    return dataset.with_cameras(cameras), moved
+
+
 def run_demo(out, config: TrainConfig, resume: bool = False, quiet: bool = False, check: bool = True,
              segment_frames: int | None = None, segments: Sequence[int] | None = None, callback=None,
              given: dict[str, str] | None = None, stop_on_signal: bool = False) -> dict:

@@ -33,6 +33,8 @@ from .metrics import affine_moments
 STEP_PIXELS = 0.25
 #: Levenberg-Marquardt damping, relative to the normal equations' diagonal.
 DAMPING = 1e-3
+#: A view of a video is aligned on this many of its frames (spread over them), in this many steps.
+ALIGN_FRAMES, ALIGN_STEPS = 4, 3
 
 
 class PoseAlignment(NamedTuple):
@@ -74,6 +76,22 @@ def align_pose(render: Callable[[Camera, int], np.ndarray], camera: Camera,
     x, mse = best_x, best_mse
     return PoseAlignment(_moved(camera, x, depth), float(np.degrees(np.linalg.norm(x[:3]))),
                          float(np.linalg.norm(x[3:]) * depth), float(first), float(mse))
+
+
+def align_view(render: Callable[[Camera, int], np.ndarray], camera: Camera, picture: Callable[[int], np.ndarray],
+               frames: Sequence[int], depth: float, count: int = ALIGN_FRAMES,
+               iterations: int = ALIGN_STEPS) -> PoseAlignment:
+    """`camera` aligned (align_pose) to its pictures at `count` of `frames` spread evenly over them (all
+    of them when fewer): picture(j) -> (H, W, 3) float image in [0, 1] of frame j, render(camera, j) the
+    held model's render of it."""
+    frames = list(frames)
+    chosen = sorted({frames[k] for k in np.linspace(0, len(frames) - 1, min(count, len(frames))).round().astype(int)})
+    return align_pose(render, camera, [(int(j), picture(int(j))) for j in chosen], depth, iterations=iterations)
+
+
+def renders_at_most(frames: int, iterations: int = ALIGN_STEPS) -> int:
+    """How many renders align_pose makes at most for `frames` pictures (a progress bar's total)."""
+    return frames * (iterations + 1) + frames * 12 * iterations
 
 
 def _moved(camera: Camera, x: np.ndarray, depth: float) -> Camera:

@@ -144,6 +144,17 @@ class Dataset:
         view.bounds, view.bounds_source = bounds, source
         return view
 
+    def with_cameras(self, cameras: Sequence[Camera]) -> "Dataset":
+        """A view with these cameras in place of its own (as many, the same sizes: a pose aligned or
+        refined); the frames are shared, this dataset is left as it is."""
+        cameras = list(cameras)
+        if len(cameras) != self.num_cameras or any((c.width, c.height) != (self.width, self.height) for c in cameras):
+            raise ValueError(f"with_cameras: {len(cameras)} cameras for a dataset of {self.num_cameras} "
+                             f"at {self.width}x{self.height}")
+        view = copy.copy(self)
+        view.cameras = cameras
+        return view
+
     def corrected(self, brightness: dict) -> "Dataset":
         """A view whose `image` of camera c is divided by brightness[c] ((H, W, 3) or (3,) float32: the
         camera's lens falloff times its colour gains, stg_train.lens.picture_brightness), so that its

@@ -146,6 +146,36 @@ def test_cli_trains_and_evaluates(scene_dir, tmp_path, capsys):
     assert len(figures["per_frame"]) == SCENE["num_frames"]
 
 
+def test_stg_eval_aligns_a_held_out_pose_that_is_off(dynamic, scene_dir, tmp_path, capsys):
+    import shutil
+
+    import numpy as np
+
+    from stg_train.rotations import rotation_from_axis_angle
+
+    export_trainer(dynamic, tmp_path / "model.stg")
+    off = tmp_path / "off"  # the same scene, its held-out camera's stated pose turned by 1.5 degrees
+    shutil.copytree(scene_dir, off, ignore=shutil.ignore_patterns(".stg_cache"))
+    poses = np.load(off / "poses_bounds.npy")
+    camera_to_world = poses[0, :15].reshape(3, 5)
+    camera_to_world[:, :3] = rotation_from_axis_angle(np.radians(1.5) * np.array([0.6, 0.8, 0.0])) @ camera_to_world[:, :3]
+    poses[0, :15] = camera_to_world.reshape(-1)
+    np.save(off / "poses_bounds.npy", poses)
+    common = [str(tmp_path / "model.stg"), "--no-lpips", "--quiet", "--json"]
+    assert eval_main(common + [str(tmp_path / "true.json"), str(scene_dir)]) == 0
+    assert eval_main(common + [str(tmp_path / "off.json"), str(off), "--any-cameras"]) == 0
+    assert eval_main(common + [str(tmp_path / "aligned.json"), str(off), "--any-cameras", "--align-poses"]) == 0
+    assert "stg-eval: cam00's pose aligned to its pictures: moved 1." in capsys.readouterr().err
+    true, stated, aligned = (json.loads((tmp_path / f"{name}.json").read_text()) for name in ("true", "off", "aligned"))
+    pose = np.array(aligned["aligned_poses"]["cam00"]["world_to_camera"])[:3, :3]
+    turn = pose @ load_n3v(scene_dir, prefer_png=True).cameras[0].R.T
+    print(f"PSNR at the true pose {true['psnr']:.2f}, turned {stated['psnr']:.2f}, aligned {aligned['psnr']:.2f} dB; "
+          f"aligned {np.degrees(np.arccos((np.trace(turn) - 1) / 2)):.3f} degrees from the truth")
+    assert np.degrees(np.arccos(min(1.0, (np.trace(turn) - 1) / 2))) < 0.4  # from 1.5 (the tiny model's own: 0.26)
+    assert aligned["psnr"] > stated["psnr"] + 2 and aligned["psnr"] > true["psnr"] - 0.5
+    assert "aligned_poses" not in stated
+
+
 def test_cli_resume_continues(scene_dir, tmp_path):
     out = tmp_path / "run"
     args = [str(scene_dir), "--out", str(out), "--points", "300", "--quiet", "--checkpoint-every", "5"]

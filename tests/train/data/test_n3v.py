@@ -61,6 +61,26 @@ def test_cameras_round_trip(n3v, tmp_path):
     assert data.bounds.shape == (CAMS, 2) and np.all(0 < data.bounds[:, 0]) and np.all(data.bounds[:, 0] < data.bounds[:, 1])
 
 
+def test_views_with_other_cameras_and_corrected_pictures_share_the_frames(n3v, tmp_path):
+    from dataclasses import replace
+
+    data = load_n3v(n3v[0], cache_dir=tmp_path)
+    moved = list(data.cameras)
+    moved[0] = replace(moved[0], world_to_camera=np.eye(4))
+    view = data.with_cameras(moved)
+    assert view.cameras[0] is moved[0] and data.cameras[0] is not moved[0] and view.frames is data.frames
+    with pytest.raises(ValueError, match="with_cameras: 3 cameras for a dataset of 4"):
+        data.with_cameras(moved[:3])
+    with pytest.raises(ValueError, match="at 64x48"):
+        data.with_cameras([data.cameras[0].resized(16, 12)] + moved[1:])
+    halves = data.corrected({1: np.full(3, 0.5, np.float32)})
+    np.testing.assert_allclose(halves.image(1, 2), np.clip(data.image(1, 2) * 2, 0, 1))
+    np.testing.assert_array_equal(halves.frame(1, 2), data.frame(1, 2))
+    np.testing.assert_array_equal(halves.image(2, 2), data.image(2, 2))
+    np.testing.assert_allclose(halves.frame_range(1, 2).image(1, 1), halves.image(1, 2))  # views keep it
+    assert data.brightness is None
+
+
 def test_png_frames_equal_the_renders_and_mp4_frames_are_close(n3v, scene, tmp_path):
     path, cams = n3v
     png = load_n3v(path, prefer_png=True, cache_dir=tmp_path / "png")
