@@ -61,7 +61,11 @@ class TrainConfig:
     edge_weight: how often the first and last frames a run shows (trainer.EDGE_FRAMES at each end: the
     video's ends, and a segment's frames next to a seam) are drawn for a training step, relative to the
     others, a video's own first and last frame trainer.END_FRAME_FACTOR times that (ours; the reference
-    draws every frame alike, 1).
+    draws every frame alike, 1); camera_gains: {camera name: (r, g, b)} the training cameras' colour
+    gains relative to the rig's, as the rig's measurement before training found them where it decided
+    on an appearance (stg_train.self_calibration.calibrate_rig; None: not measured): the initial points
+    are drawn from the pictures divided by them (Trainer.initial_brightness), and a long video's
+    segments, which are given the measurement's choices, share them.
     docs/training.md says which defaults are the reference's and which are ours, with the measurements behind them.
     """
 
@@ -94,6 +98,7 @@ class TrainConfig:
     camera_learning_rates: dict = field(default_factory=dict)
     segment_context: int = 4
     edge_weight: float = 3.0
+    camera_gains: dict | None = None
 
     def for_dataset(self, dataset) -> "TrainConfig":
         """These settings with the choices left open made: init "auto" (or None) -> default_method(dataset),

@@ -198,7 +198,8 @@ def calibrate_rig(dataset, config, progress: Callable[[int, int], None] | None =
     appearance is learned when the cameras' colour gains disagree (GAIN_SPREAD) or their lenses do
     (LENS_SPREAD: each camera's appearance then learns its own falloff); the poses are refined when the
     matches stray from the stated poses' epipolar lines (EPIPOLAR). Never raises for the rig: the notes
-    say what was decided and why. progress: as measure_rig's."""
+    say what was decided and why; where an appearance is learned, the measured colour gains go into the
+    config's camera_gains. progress: as measure_rig's."""
     try:
         estimate = measure_rig(dataset, progress=progress)
     except ValueError as e:
@@ -233,7 +234,9 @@ def calibrate_rig(dataset, config, progress: Callable[[int, int], None] | None =
             size = "full-size pictures" if estimate.scale >= 1 else f"pictures scaled to {estimate.scale:.2g}"
             notes.append(f"camera poses: matched pixels lie {estimate.epipolar:.2f} px (median) from the epipolar "
                          f"lines of the stated poses, in {size}: {choice}")
-    return (replace(config, lens_falloff=falloff, appearance=appearance, pose_refine=poses),
+    gains = None if estimate is None or appearance is not True else \
+        {dataset.cameras[c].name: tuple(float(g) for g in row) for c, row in zip(dataset.train_cameras, estimate.gains)}
+    return (replace(config, lens_falloff=falloff, appearance=appearance, pose_refine=poses, camera_gains=gains),
             RigCalibration(falloff, appearance, poses, estimate, tuple(notes)))
 
 

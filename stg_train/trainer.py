@@ -321,16 +321,15 @@ class Trainer:
     def initial_brightness(self) -> dict[int, np.ndarray]:
         """{training camera index: (H, W, 3) brightness of its pictures against the canonical scene}
         (lens.picture_brightness), which the initial points' pictures are divided by: the lens falloff
-        trained with, times the camera's colour gains where an appearance is learned and the rig's
-        measurement before training found them (self.calibration); {} when there is neither (a clean
-        capture: its initial points are as they were)."""
-        estimate = None if self.calibration is None else self.calibration.estimate
-        gains = estimate.gains if estimate is not None and self.config.appearance is True else None
-        if self.lens_falloff is None and gains is None:
+        trained with, times the camera's colour gains where the rig's measurement before training found
+        them for an appearance (TrainConfig.camera_gains); {} when there is neither (a clean capture: its
+        initial points are as they were)."""
+        gains = self.config.camera_gains if self.config.appearance is True else None
+        if self.lens_falloff is None and not gains:
             return {}
-        train = self.dataset.train_cameras
-        return {c: picture_brightness(self.dataset.cameras[c], self.lens_falloff, None if gains is None else gains[n])
-                for n, c in enumerate(train)}
+        cameras = self.dataset.cameras
+        return {c: picture_brightness(cameras[c], self.lens_falloff, (gains or {}).get(cameras[c].name))
+                for c in self.dataset.train_cameras}
 
     # -- one step -------------------------------------------------------------------------------------
     def sample_frame(self) -> int:

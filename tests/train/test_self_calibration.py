@@ -181,6 +181,8 @@ def test_segments_share_one_measurement_of_the_whole_video(tmp_path, capsys):
     segment = [json.loads((tmp_path / "out" / "segments" / f"{i:02d}" / "metrics.json").read_text()) for i in range(2)]
     chosen = {tuple(m["settings"]["lens_falloff"]) for m in segment}
     assert len(chosen) == 1 and metrics["settings"]["appearance"] is True
+    gains = [m["settings"]["camera_gains"] for m in segment]  # the initial points' too
+    assert gains[0] == gains[1] and sorted(gains[0]) == [dataset.cameras[c].name for c in dataset.train_cameras]
 
 
 def test_stg_train_leaves_both_auto_unless_told():
@@ -381,6 +383,8 @@ def test_the_initial_points_match_the_pictures_as_the_canonical_scene_would_look
     trainer = Trainer(dataset, TrainConfig(iterations=3, num_points=500))
     brightness = trainer.initial_brightness()  # the falloff trained with, times the gains measured
     gains = trainer.calibration.estimate.gains
+    assert trainer.config.camera_gains == {dataset.cameras[c].name: tuple(gains[n])
+                                           for n, c in enumerate(dataset.train_cameras)}
     assert sorted(brightness) == dataset.train_cameras
     for n, c in enumerate(dataset.train_cameras):
         camera = dataset.cameras[c]
@@ -399,4 +403,5 @@ def test_the_initial_points_match_the_pictures_as_the_canonical_scene_would_look
     reference = _on_the_surface(clean, clean.cameras, initial_points(clean, "volume", 3000, np.random.default_rng(0),
                                                                       depth_candidates=64))
     assert after > before + 0.15 and after > reference - 0.15, (before, after, reference)
-    assert Trainer(clean, TrainConfig(iterations=3, num_points=500)).initial_brightness() == {}  # nothing measured
+    plain = Trainer(clean, TrainConfig(iterations=3, num_points=500))
+    assert plain.initial_brightness() == {} and plain.config.camera_gains is None  # nothing to correct
