@@ -12,7 +12,9 @@ from .common import Parser, add_dataset_options, dataset_options, error, finite_
 PROG = "stg-eval"
 
 EPILOG = """Renders the held-out camera(s) of DATA (cam00 for N3V; --test-camera to choose) at every frame through the runtime player
-and compares with the ground truth: PSNR (dB), SSIM (scikit-image, data_range 1), DSSIM1 = (1 - SSIM)/2
+and compares with the ground truth: PSNR (dB), the colour-aligned PSNR (after one affine colour map,
+3x3 + bias, per camera fitted over its frames: a held-out camera's own exposure and white balance not
+counted), SSIM (scikit-image, data_range 1), DSSIM1 = (1 - SSIM)/2
 with data_range 1 and DSSIM2 with data_range 2 (the paper's Sec. 6.1), LPIPS with AlexNet and VGG (the
 optional lpips package: python -m pip install -e ".[lpips]"; its backbones download on first use; a
 line on stderr says why when it is left out), render FPS, model size.
