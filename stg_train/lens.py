@@ -3,8 +3,8 @@ the principal point over its value at the farthest image corner (appearance.radi
 once, for the falloff the cameras learn (stg_train.appearance) and the one given as known
 (TrainConfig.lens_falloff, `stg-train --lens-falloff`), s over a picture's pixels (`radial_grid`), a
 picture's brightness against the canonical scene's (`picture_brightness`), and the range a known one
-must keep. Imports nothing at load (numpy only inside radial_grid), so the
-command line checks a falloff before torch loads."""
+must keep. Imports nothing at load (numpy only inside the functions that make arrays), so the command
+line checks a falloff before torch loads."""
 from __future__ import annotations
 
 import math

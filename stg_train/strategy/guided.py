@@ -5,7 +5,8 @@ Gaussians near existing ones. Guided sampling adds Gaussians along the rays of p
 within the coarse depth range, after the loss has settled. It follows the reference implementation:
 
 1. At `schedule.guided_start` (1600 of 30k iterations, scaled like the rest of the schedule) every
-   training view is rendered at the step's time and compared with its ground truth (3DGS's SSIM); the
+   training view is rendered at the step's time and compared with its ground truth (3DGS's SSIM; the
+   picture as the canonical scene would look where the cameras are modelled, StepContext); the
    (up to) `views` = 2 views with the lowest SSIM below `select_ssim` = 0.91 are chosen (the reference
    chooses none unless at least two are below: `min_views`).
 2. At guided_start and then every `schedule.guided_every` steps, one chosen view is rendered again at
@@ -92,7 +93,8 @@ def _unpatch(x: Tensor, p: int, h: int, w: int) -> Tensor:
 
 
 def error_pixels(image: Tensor, gt: Tensor, settings: GuidedSettings = GuidedSettings()) -> Tensor:
-    """(H, W) bool: error pixels of selected patches, borders excluded. image, gt (H, W, 3) in [0, 1]."""
+    """(H, W) bool: error pixels of selected patches, borders excluded. image, gt (H, W, 3) in [0, 1] (gt a
+    little above 1 where a camera's falloff or appearance was divided out, StepContext.ground_truth)."""
     s = settings
     diff = (image / (image.mean() + 0.01) - gt / (gt.mean() + 0.01)).abs().sum(-1)
     flat = torch.sort(diff.reshape(-1)).values
@@ -198,7 +200,8 @@ class GuidedSampling(Strategy):
     def new_gaussians(self, params: STGParams, camera, image: Tensor, gt: Tensor, depth: Tensor, alpha: Tensor,
                       far: float | None) -> dict[str, Tensor] | None:
         """Raw rows of the Gaussians guided sampling adds for one view (None if no pixel qualifies).
-        image, gt (H, W, 3) in [0, 1]; depth, alpha (H, W) from the render; far: the camera's far bound."""
+        image, gt (H, W, 3) in [0, 1] (gt as error_pixels'); depth, alpha (H, W) from the render; far: the
+        camera's far bound. The new Gaussians' colours are gt's."""
         s = self.settings
         mask = error_pixels(image, gt, s)
         rows, cols = torch.nonzero(mask, as_tuple=True)
