@@ -391,6 +391,9 @@ def test_the_initial_points_match_the_pictures_as_the_canonical_scene_would_look
         np.testing.assert_allclose(brightness[c][int(camera.cy), int(camera.cx)], gains[n], rtol=0.01)
         np.testing.assert_allclose(brightness[c][0, 0], lens_brightness(1.0, trainer.lens_falloff) * gains[n], rtol=0.02)
     corrected = dataset.corrected(brightness)
+    drawn = initial_points(corrected, "volume", 500, np.random.default_rng(0), depth_candidates=64)
+    np.testing.assert_array_equal(trainer.initial.xyz, drawn.xyz)  # the trainer's are drawn from these pictures
+    np.testing.assert_array_equal(trainer.initial.rgb, drawn.rgb)
     c = dataset.train_cameras[0]
     np.testing.assert_array_equal(corrected.frame(c, 1), dataset.frame(c, 1))  # the pictures trained on stay
     np.testing.assert_allclose(corrected.image(c, 1), np.clip(dataset.image(c, 1) / brightness[c], 0, 1))
