@@ -556,15 +556,17 @@ def align_heldout(player: Player, dataset, frames: Sequence[int], quiet: bool = 
     depth = typical_depth(None if dataset.bounds is None else dataset.bounds[dataset.train_cameras]) or extent_of(train)
     start = getattr(dataset, "start_frame", 0)
     cameras, moved = list(dataset.cameras), {}
-    total = len(dataset.test_cameras) * renders_at_most(min(ALIGN_FRAMES, len(frames)))
-    with Progress(total=total, desc="aligning the held-out poses", enabled=not quiet) as bar:
+    budget = renders_at_most(min(ALIGN_FRAMES, len(frames)))  # a camera's share of the bar
+    with Progress(total=len(dataset.test_cameras) * budget, desc="aligning the held-out poses",
+                  enabled=not quiet) as bar:
         def render(camera, j):
             bar.update()
             return player.render(camera, (start + j) / dataset.fps)
 
-        for ci in dataset.test_cameras:
+        for k, ci in enumerate(dataset.test_cameras):
             result = align_view(render, cameras[ci], lambda j: dataset.image(ci, j), frames, depth)
             cameras[ci], moved[cameras[ci].name] = result.camera, result
+            bar.update((k + 1) * budget - bar.count)  # the renders an early stop saved
     return dataset.with_cameras(cameras), moved
 
 
