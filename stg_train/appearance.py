@@ -70,11 +70,7 @@ class CameraAppearance:
         if camera_index not in self.matrix:
             return image
         out = image @ self.matrix[camera_index].T + self.bias[camera_index]
-        if self.vignetting:
-            if camera_index not in self._radial:
-                self._radial[camera_index] = radial(camera, image.device, image.dtype)
-            out = out * lens_brightness(self._radial[camera_index], self.falloff[camera_index])[..., None]
-        return out
+        return out * self._brightness(camera_index, camera, image)[..., None] if self.vignetting else out
 
     @torch.no_grad()
     def undo(self, image: Tensor, camera_index: int, camera: Camera) -> Tensor:
@@ -84,10 +80,14 @@ class CameraAppearance:
         if camera_index not in self.matrix:
             return image
         if self.vignetting:
-            if camera_index not in self._radial:
-                self._radial[camera_index] = radial(camera, image.device, image.dtype)
-            image = image / lens_brightness(self._radial[camera_index], self.falloff[camera_index])[..., None]
+            image = image / self._brightness(camera_index, camera, image)[..., None]
         return (image - self.bias[camera_index]) @ torch.linalg.inv(self.matrix[camera_index]).T
+
+    def _brightness(self, camera_index: int, camera: Camera, image: Tensor) -> Tensor:
+        """(H, W) the camera's learned falloff over its picture (its radial grid cached on first use)."""
+        if camera_index not in self._radial:
+            self._radial[camera_index] = radial(camera, image.device, image.dtype)
+        return lens_brightness(self._radial[camera_index], self.falloff[camera_index])
 
     @torch.no_grad()
     def center(self) -> None:
