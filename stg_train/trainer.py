@@ -40,8 +40,7 @@ from .pose_refine import PoseCorrections
 from .self_calibration import (LENS_SPREAD, UNCERTAIN, calibrate_rig, measure_rig_with_depth, measured_frames,
                                needs_calibration)
 from .render import rasterize
-from .strategy import (DensityControl, GuidedSampling, GuidedSettings, Schedule, SeparateRotation, StepContext,
-                       Strategy, Thresholds)
+from .strategy import Schedule, StepContext, Strategy, StrategySetup, build_strategies
 
 CHECKPOINT_VERSION = 1
 #: The time axis of the checkpoints written here (frame_time): normalised over the shown frames. Those of a
@@ -167,7 +166,6 @@ class Trainer:
         if config.stretch_rates:
             self.lr = self.lr.stretched(self.steps)
         self.schedule = Schedule.scaled(self.steps, **config.schedule)
-        self.thresholds = Thresholds(**config.thresholds)
         self._rays: dict[int, Tensor] = {}
         if _state is None:
             random.seed(config.seed)
@@ -194,11 +192,7 @@ class Trainer:
             self.step = int(_state["step"])
             self.rng = np.random.default_rng()
         self.optimizer = torch.optim.Adam(self.params.param_groups(self.lr, self.extent), eps=1e-15, fused=True)
-        self.strategies: list[Strategy] = [DensityControl(self.schedule, self.extent, self.thresholds, box=self.box)]
-        if config.guided:
-            self.strategies.append(GuidedSampling(self.schedule, GuidedSettings(**config.guided_settings)))
-        if config.separate_rotation:
-            self.strategies.append(SeparateRotation(self.schedule))
+        self.strategies: list[Strategy] = build_strategies(StrategySetup(config, self.schedule, self.extent, self.box))
         self._init_camera_models()
         self.history: list[dict] = []  # per-step figures: step, loss, psnr, gaussians, seconds
         self.seconds = 0.0  # training time so far (excluding checkpoints and callbacks)
