@@ -1,14 +1,14 @@
 #!/usr/bin/env python
 """Realistic captures (issue 33): the same synthetic scene captured cleanly and as a real rig would
 (per-camera exposure and white balance, vignetting, sensor noise, a small pose error:
-stg_train.capture.CaptureModel, what `stg-synth --realistic` writes), trained with and without the
+stg_train.rig.capture.CaptureModel, what `stg-synth --realistic` writes), trained with and without the
 per-camera appearance (TrainConfig.appearance) and pose refinement (TrainConfig.pose_refine), and scored
 against the CLEAN lossless frames: raw and colour-aligned PSNR (stg_train.metrics, one affine colour map
 per camera) on the held-out camera, rendered at its TRUE pose (scene.json), and on two novel views
 inside the rig (ray traced); the same views again moved into the model's frame (capture.in_model_frame:
 pictures fix a model only up to a similarity of the world, and the stated poses' frame is not the
 truth's); and each of those again with its pose aligned to its own pictures against the trained model
-(stg_train.pose_align: test-time pose optimisation, as BARF and NeRF-- score pose-refining methods, the
+(stg_train.rig.pose_align: test-time pose optimisation, as BARF and NeRF-- score pose-refining methods, the
 clean capture's model the same way); plus the training cameras' pose error against the truth, as stated
 and as refined.
 
@@ -18,12 +18,12 @@ and as refined.
                               [--data DIR] [--json PATH] [--checkpoints DIR [--reuse]]
 
 Variants: default (TrainConfig's defaults: the falloff, the appearance and the pose refinement "auto",
-decided from the rig's measurement, stg_train.self_calibration.calibrate_rig), plain (none of the
+decided from the rig's measurement, stg_train.rig.self_calibration.calibrate_rig), plain (none of the
 three: the defaults before 2026-12-04), appearance, pose (pose_refine), both, colour (appearance
 without its vignetting term), known (both, with the capture's true vignetting given as
 TrainConfig.lens_falloff, as a flat-field calibration would give it), known-appearance (the same without pose refinement), measured
 and measured-appearance (the same two with the vignetting measured from the cameras' overlap before
-training, TrainConfig.lens_falloff "auto": stg_train.self_calibration), lens-auto (that measurement
+training, TrainConfig.lens_falloff "auto": stg_train.rig.self_calibration), lens-auto (that measurement
 alone, no appearance or pose refinement). Each seed
 is one realistic capture
 (CaptureModel(seed=SEED), the knobs' defaults unless --capture changes them, e.g. --capture noise=0)
@@ -45,12 +45,12 @@ import stg_train  # noqa: F401  (first: it configures OpenMP before torch loads)
 import numpy as np
 import torch
 
-from stg_train.capture import CaptureModel, capture_record, in_model_frame, pose_errors
+from stg_train.rig.capture import CaptureModel, capture_record, in_model_frame, pose_errors
 from stg_train.data import load_n3v
 from stg_train.data.bounds import typical_depth
 from stg_train.data.dataset import Dataset
 from stg_train.metrics import evaluate_images
-from stg_train.pose_align import align_view
+from stg_train.rig.pose_align import align_view
 from stg_train.pipeline import DEMO_SCENE
 from stg_train.synthetic import NOVEL_VIEWS, SyntheticScene, novel_view_dataset, write_n3v
 from stg_train.trainer import Trainer, TrainConfig
@@ -211,17 +211,17 @@ def main() -> None:
                        "gaussians": trainer.params.count, "views": score(trainer, views),
                        "views_in_frame": score(trainer, framed), "views_aligned": score(trainer, aligned),
                        "alignment": moved}
-                if trainer.calibration is not None and trainer.calibration.estimate is not None:
-                    row["measured_falloff"] = list(trainer.calibration.estimate.k)
+                if trainer.rig.calibration is not None and trainer.rig.calibration.estimate is not None:
+                    row["measured_falloff"] = list(trainer.rig.calibration.estimate.k)
                     row["chosen"] = {k: getattr(trainer.config, k) for k in ("lens_falloff", "appearance", "pose_refine")}
-                if trainer.remeasure_note:
-                    row["remeasured"] = trainer.remeasure_note
-                if trainer.appearance is not None:
-                    summary = trainer.appearance.summary()
+                if trainer.rig.remeasure_note:
+                    row["remeasured"] = trainer.rig.remeasure_note
+                if trainer.rig.appearance is not None:
+                    summary = trainer.rig.appearance.summary()
                     row["vignetting"] = np.mean([a["vignetting"] for a in summary], axis=0).tolist()
                     row["matrix_spread"] = float(np.std([np.diag(a["matrix"]) for a in summary]))
-                if trainer.poses is not None:
-                    state = trainer.poses.state_dict()
+                if trainer.rig.poses is not None:
+                    state = trainer.rig.poses.state_dict()
                     row["correction"] = (float(np.degrees(state["rotation"].norm(dim=1).mean())),
                                          float(state["translation"].norm(dim=1).mean() * state["scale"]))
                 if capture_name == "realistic":
@@ -253,7 +253,7 @@ def main() -> None:
                 print(f"{'':31s}each view's pose aligned: {figures}", flush=True)
     print("\nraw / colour-aligned PSNR against the clean lossless frames (held-out camera at its true pose; in the "
           "model's frame: every view moved by the similarity of the world that best takes the true training poses "
-          "to the model's; each view's pose aligned: then aligned to its own pictures, stg_train.pose_align)")
+          "to the model's; each view's pose aligned: then aligned to its own pictures, stg_train.rig.pose_align)")
     if args.json:
         Path(args.json).write_text(json.dumps({"settings": {**vars(args), "set": settings}, "results": results},
                                               indent=1, default=str) + "\n")

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""What the rig's measurement before training finds and decides (stg_train.self_calibration.calibrate_rig,
+"""What the rig's measurement before training finds and decides (stg_train.rig.self_calibration.calibrate_rig,
 TrainConfig's lens_falloff, appearance and pose_refine "auto"), on synthetic captures whose truth is
 known: the demo scene's 12 cameras at 160x120, 2 frames, captured cleanly, through `stg-synth
 --realistic`'s defaults (two seeds), with the pose error alone, with the vignetting alone, and cleanly
@@ -24,11 +24,11 @@ from pathlib import Path
 import stg_train  # noqa: F401  (first: it configures OpenMP before torch loads)
 import numpy as np
 
-from stg_train.capture import CaptureModel, with_vignetting
+from stg_train.rig.capture import CaptureModel, with_vignetting
 from stg_train.config import TrainConfig
 from stg_train.data import load_dataset, load_n3v
 from stg_train.data.dataset import Dataset
-from stg_train.self_calibration import calibrate_rig
+from stg_train.rig.self_calibration import calibrate_rig
 from stg_train.synthetic import SyntheticScene, write_immersive, write_n3v
 
 VIGNETTING_ALONE = dict(gain=0, white_balance=0, noise=0, rotation_deg=0, translation=0)

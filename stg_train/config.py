@@ -44,16 +44,16 @@ class TrainConfig:
     separate_rotation: the reference's step that keeps the rotation velocity only for moving Gaussians
     (stg_train.strategy.rotation, at Schedule.separate_at); appearance: a learned colour transform per
     training camera (and, with appearance_vignetting, a radial falloff) applied to its renders before
-    the loss only (stg_train.appearance): True, False, or "auto" (the default: on when the training
+    the loss only (stg_train.rig.appearance): True, False, or "auto" (the default: on when the training
     cameras' colour gains, measured before training from what they see of the same surfaces, disagree;
-    stg_train.self_calibration.calibrate_rig); pose_refine: a learned rigid correction of each training
-    camera's pose (stg_train.pose_refine): True, False, or "auto" (the default: on when what neighbouring
+    stg_train.rig.self_calibration.calibrate_rig); pose_refine: a learned rigid correction of each training
+    camera's pose (stg_train.rig.pose_refine): True, False, or "auto" (the default: on when what neighbouring
     training cameras see strays from the epipolar lines of their stated poses); lens_falloff: the
     training cameras' known vignetting (k1, k2), e.g. from a flat-field calibration, applied to their
-    renders before the loss as 1 + k1 s + k2 s^2 (stg_train.lens; ValueError outside its range), when
+    renders before the loss as 1 + k1 s + k2 s^2 (stg_train.rig.lens; ValueError outside its range), when
     the appearance then learns none; None: none; "auto" (the default) measures it before training from what the training cameras see of
     the same surfaces, and trains without one where it cannot be measured or is too small to matter
-    (stg_train.self_calibration; the checkpoint keeps the choices made);
+    (stg_train.rig.self_calibration; the checkpoint keeps the choices made);
     camera_learning_rates: overrides of their rates (keys "matrix", "bias", "vignetting" of
     appearance.APPEARANCE_LR, "rotation", "translation" of pose_refine.POSE_LR); segment_context: for a video trained in segments, how many neighbouring
     frames on each side a segment is also fitted to (as context: it shows only its own frames, and the
@@ -63,7 +63,7 @@ class TrainConfig:
     others, a video's own first and last frame trainer.END_FRAME_FACTOR times that (ours; the reference
     draws every frame alike, 1); camera_gains: {camera name: (r, g, b)} the training cameras' colour
     gains relative to the rig's, as the rig's measurement before training found them where it decided
-    on an appearance (stg_train.self_calibration.calibrate_rig; None: not measured): the initial points
+    on an appearance (stg_train.rig.self_calibration.calibrate_rig; None: not measured): the initial points
     are drawn from the pictures divided by them (Trainer.initial_brightness), and a long video's
     segments, which are given the measurement's choices, share them.
     docs/training.md says which defaults are the reference's and which are ours, with the measurements behind them.

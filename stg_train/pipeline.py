@@ -43,7 +43,7 @@ from .convert.merge import merge_files
 from .data import DataError, load_dataset
 from .export import export_trainer
 from .metrics import evaluate_player, heldout, lpips_models
-from .self_calibration import AUTO_FIELDS, calibrate_rig, needs_calibration
+from .rig.self_calibration import AUTO_FIELDS, calibrate_rig, needs_calibration
 from .segments import (PLAN_NAME, SegmentError, cache_chunks, check_plan, finished, missing_message, plan_segments, pooled,
                        segment_dir, segment_view, worst_check)
 from .synthetic import SyntheticScene, write_n3v
@@ -85,13 +85,13 @@ def warnings_said():
         print(f"stg-train: warning: {w.message}", file=sys.stderr)
 
 
-#: The progress bar's title while the rig is measured (stg_train.self_calibration).
+#: The progress bar's title while the rig is measured (stg_train.rig.self_calibration).
 CALIBRATION_STAGE = "measuring the rig (lenses, colours, poses)"
 
 
 def new_trainer(dataset, config: TrainConfig, out: Path, quiet: bool = False) -> Trainer:
     """Trainer(dataset, config, out) with progress bars while the rig is measured (a setting "auto",
-    stg_train.self_calibration), while SfM computes the initial points and while the optical flow gives
+    stg_train.rig.self_calibration), while SfM computes the initial points and while the optical flow gives
     them their motion; its warnings (SfM found too few points) are printed as "stg-train: warning: ..."
     lines, and what the rig's measurement decided and the initial points' split, coverage and depth
     bounds as "stg-train: ..." lines (unless quiet)."""
@@ -100,7 +100,7 @@ def new_trainer(dataset, config: TrainConfig, out: Path, quiet: bool = False) ->
                           motion_progress=stage("initial motion (optical flow)"),
                           calibration_progress=stage(CALIBRATION_STAGE))
     if not quiet:
-        for line in (() if trainer.calibration is None else trainer.calibration.notes):
+        for line in (() if trainer.rig.calibration is None else trainer.rig.calibration.notes):
             print(f"stg-train: {line}", file=sys.stderr)
         for line in trainer.initial.describe().splitlines():
             print(f"stg-train: {line}", file=sys.stderr)
@@ -110,7 +110,7 @@ def new_trainer(dataset, config: TrainConfig, out: Path, quiet: bool = False) ->
 def calibrated_once(dataset, config: TrainConfig, given: dict[str, str] | None = None,
                     quiet: bool = False) -> tuple[TrainConfig, dict[str, str]]:
     """For a video trained in segments: (config, given) with its "auto" settings (AUTO_FIELDS) decided
-    once from the whole video's frames (stg_train.self_calibration.calibrate_rig; said on stderr unless
+    once from the whole video's frames (stg_train.rig.self_calibration.calibrate_rig; said on stderr unless
     quiet), so that every segment trains with the same choices; `given` loses the options so decided (a
     resumed segment keeps its checkpoint's choices). Unchanged when nothing is "auto"."""
     if not needs_calibration(config):
@@ -329,8 +329,8 @@ def train(dataset, out, config: TrainConfig, resume: bool = False, quiet: bool =
     lpips = _lpips(quiet) if lpips is None else lpips  # (said after the run's own settings and notices)
     if trainer.step < trainer.steps:
         _run_training(trainer, ckpt, quiet, callback, stop_on_signal)
-    if trainer.remeasure_note and not quiet:
-        print(f"stg-train: {trainer.remeasure_note}", file=sys.stderr)
+    if trainer.rig.remeasure_note and not quiet:
+        print(f"stg-train: {trainer.rig.remeasure_note}", file=sys.stderr)
     with warnings_said():  # export's ExportWarning: said, the run goes on
         report = export_trainer(trainer, out / "model.stg", check=check)
     result = evaluate_player(Player(report.path, device="cpu"), dataset.shown(), lpips=lpips)
@@ -351,13 +351,13 @@ REFINED_CAMERAS = "refined_cameras.json"
 
 def _refined_cameras(trainer: Trainer, out: Path, quiet: bool) -> dict:
     """With pose refinement: write OUT/refined_cameras.json and, when the dataset's scene.json records the
-    capture's true poses (stg_train.capture), say how far the training cameras were and are from them;
+    capture's true poses (stg_train.rig.capture), say how far the training cameras were and are from them;
     returns {"pose_error": {"stated": ..., "refined": ...}} for metrics.json (or {})."""
-    if trainer.poses is None:
+    if trainer.rig.poses is None:
         return {}
     from stg_runtime.camera import save_camera_path
 
-    from .capture import capture_record, pose_errors
+    from .rig.capture import capture_record, pose_errors
 
     cameras = trainer.refined_cameras()
     save_camera_path(out / REFINED_CAMERAS, cameras)
@@ -366,7 +366,7 @@ def _refined_cameras(trainer: Trainer, out: Path, quiet: bool) -> dict:
     if record is None:
         return {}
     names = [ds.cameras[i].name for i in ds.train_cameras]
-    depth = trainer.poses.depth  # the scene's depth at which pose refinement measures the gauge
+    depth = trainer.rig.poses.depth  # the scene's depth at which pose refinement measures the gauge
     stated, refined = pose_errors(ds.cameras, record, names, depth), pose_errors(cameras, record, names, depth)
     if not quiet:
         aligned = "" if "aligned_rotation_deg" not in stated else (
@@ -550,7 +550,7 @@ def align_heldout(player: Player, dataset, frames: Sequence[int], quiet: bool = 
 
     from .data.bounds import typical_depth
     from .params import extent_of
-    from .pose_align import ALIGN_FRAMES, align_view, renders_at_most
+    from .rig.pose_align import ALIGN_FRAMES, align_view, renders_at_most
 
     train = [dataset.cameras[i] for i in dataset.train_cameras]
     depth = typical_depth(None if dataset.bounds is None else dataset.bounds[dataset.train_cameras]) or extent_of(train)

@@ -609,7 +609,7 @@ def write_n3v(out_dir, scene: SyntheticScene, num_cameras: int = 12, num_frames:
 
     Files of either synthetic layout left in out_dir by an earlier run are removed (_remove_layout_files).
     progress: optional callable(done, total) called after each rendered frame. capture: a
-    stg_train.capture.CaptureModel: each camera's frames go through its exposure, white balance,
+    stg_train.rig.capture.CaptureModel: each camera's frames go through its exposure, white balance,
     vignetting and noise, and poses_bounds.npy holds its perturbed pose; scene.json then records the
     model, each camera's effects and its true world_to_camera. Returns the true cameras.
     """

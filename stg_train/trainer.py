@@ -27,19 +27,14 @@ from stg_runtime.atomic import atomic_output, remove_leftovers
 from stg_runtime.camera import Camera
 from stg_runtime.progress import Progress
 
-from .appearance import CameraAppearance, radial
-from .lens import known_falloff, lens_brightness, picture_brightness
-from .data.bounds import typical_depth
 from .data.flow import initial_velocity
 from .config import MOTION_INITS, TrainConfig  # noqa: F401 (TrainConfig's home is config; re-exported)
 from .data.points import InitialPoints, initial_points
 from .losses import loss_fn
 from .metrics import psnr_of_mse
 from .params import LearningRates, STGParams, extent_of, position_lr, view_inputs
-from .pose_refine import PoseCorrections
-from .self_calibration import (LENS_SPREAD, UNCERTAIN, calibrate_rig, measure_rig_with_depth, measured_frames,
-                               needs_calibration)
 from .render import rasterize
+from .rig.camera_rig import CameraRig
 from .strategy import Schedule, StepContext, Strategy, StrategySetup, build_strategies
 
 CHECKPOINT_VERSION = 1
@@ -97,30 +92,6 @@ def frame_weights(num_frames: int, context: tuple[int, int], edge_weight: float)
     return None if np.all(p == p[0]) else p / p.sum()
 
 
-#: A run whose rig was measured before training ("auto" settings) measures it again at this fraction of its
-#: steps, through the model's own geometry (Trainer.remeasure_rig, remeasure_plan): the falloff (the flow's
-#: matches leave the corners about 0.02 too bright) where one was measured, and where an appearance is
-#: learned, the cameras' colour gains, which then hold its transforms (docs/training.md, "Real captures").
-REMEASURE_AT = 1 / 3
-#: The falloff so measured is trained on with unless its corner brightness differs from the flow's by
-#: more than this (a model whose geometry is not yet the scene's: a very short run).
-FALLOFF_AGREEMENT = 0.05
-#: ... and the colour gains held unless they differ from what the appearance has learned by more than
-#: this (RMS of the logs over cameras and channels; about 0.012 at that point on the realistic captures).
-GAIN_AGREEMENT = 0.05
-
-
-def remeasure_plan(falloff_auto: bool, config: TrainConfig, calibration) -> dict:
-    """What a run measures again through its model's geometry (Trainer.remeasure_rig), from what the rig's
-    measurement before training decided (calibrate_rig's config and RigCalibration; falloff_auto: the
-    falloff was "auto"): "falloff" where it was measured and trained with; "gains" where an appearance is
-    learned and the lenses were measured to share one falloff (the geometric fit assumes they do)."""
-    estimate = calibration.estimate
-    lenses_alike = estimate is not None and estimate.lens_spread <= LENS_SPREAD
-    return {"falloff": bool(falloff_auto and config.lens_falloff is not None),
-            "gains": bool(config.appearance is True and lenses_alike)}
-
-
 class Trainer:
     """Trains STGParams on a Dataset (stg_train.data.Dataset).
 
@@ -129,8 +100,8 @@ class Trainer:
     called per frame while SfM computes the initial points (not when cached); motion_progress(done,
     total): per frame while the optical flow gives them their initial motion (motion_init "flow");
     calibration_progress(done, total): per camera pair while the rig is measured for a lens_falloff,
-    appearance or pose_refine "auto" (stg_train.self_calibration; its RigCalibration is then
-    `calibration`, else None: the choices made are in self.config). initial: the
+    appearance or pose_refine "auto" (stg_train.rig.self_calibration). self.rig: the run's CameraRig,
+    what its cameras do to the picture (self.config: the choices made of "auto"). initial: the
     stg_train.data.points.InitialPoints of a fresh run (None when resumed). A dataset without near/far
     bounds gets those the initialisation derived (self.dataset is then a view of it with them; a resumed
     run takes them from the checkpoint), so guided sampling clips to them as on N3V.
@@ -142,19 +113,9 @@ class Trainer:
                  calibration_progress: Callable[[int, int], None] | None = None):
         if config.motion_init not in MOTION_INITS:
             raise ValueError(f"motion_init must be one of {MOTION_INITS}, got {config.motion_init!r}")
-        config = config.for_dataset(dataset)
-        self.calibration = None
-        # lens falloff, appearance, pose refinement "auto": decided from the rig (a resumed run keeps its choices)
-        if needs_calibration(config) and _state is None:
-            measured = config.lens_falloff == "auto"
-            config, self.calibration = calibrate_rig(dataset, config, progress=calibration_progress)
-            self.remeasure = remeasure_plan(measured, config, self.calibration)
-        else:  # what was measured before training is to be measured again (remeasure_rig)
-            self.remeasure = dict((_state or {}).get("remeasure") or {"falloff": False, "gains": False})
-        self.remeasure_note: str | None = None  # what remeasure_rig found, for stg-train to say
-        # (k1, k2) of a known vignetting, checked (a ValueError) before anything is computed
-        self.lens_falloff = None if config.lens_falloff is None else known_falloff(config.lens_falloff)
-        self.dataset, self.config = dataset, config
+        # the cameras' "auto" settings decided from the rig (a resumed run keeps its choices): self.config
+        self.rig = CameraRig(dataset, config.for_dataset(dataset), _state, calibration_progress)
+        config, self.dataset = self.config, dataset
         self.out_dir = None if out_dir is None else Path(out_dir)
         if self.out_dir is not None:
             remove_leftovers(self.out_dir, "checkpoint.pt")  # of a run killed while saving
@@ -193,12 +154,12 @@ class Trainer:
             self.rng = np.random.default_rng()
         self.optimizer = torch.optim.Adam(self.params.param_groups(self.lr, self.extent), eps=1e-15, fused=True)
         self.strategies: list[Strategy] = build_strategies(StrategySetup(config, self.schedule, self.extent, self.box))
-        self._init_camera_models()
+        self.rig.start(self.dataset, self.device, self.extent, self.steps)
         self.history: list[dict] = []  # per-step figures: step, loss, psnr, gaussians, seconds
         self.seconds = 0.0  # training time so far (excluding checkpoints and callbacks)
         if _state is not None:
             self.optimizer.load_state_dict(_state["optimizer"])
-            self._load_camera_models(_state)
+            self.rig.load_state_dict(_state)
             for s, st in zip(self.strategies, _state["strategies"]):
                 s.load_state_dict(st)
             self.history, self.seconds = list(_state["history"]), float(_state["seconds"])
@@ -208,63 +169,14 @@ class Trainer:
                 torch.cuda.set_rng_state_all(_state["rng"]["cuda"])
             random.setstate(_state["rng"]["python"])
 
-    # -- per-camera appearance and pose refinement (stg_train.appearance, stg_train.pose_refine) ---------
-    def _init_camera_models(self) -> None:
-        """self.appearance / self.poses (None when off) and their own Adam, self.camera_optimizer."""
-        cfg, ds = self.config, self.dataset
-        self.appearance = self.poses = self.camera_optimizer = None
-        self._falloffs: dict[int, Tensor] = {}
-        groups = []
-        if cfg.appearance:
-            self.appearance = CameraAppearance(len(ds.cameras), ds.train_cameras, self.device,
-                                               cfg.appearance_vignetting and cfg.lens_falloff is None)
-            groups += self.appearance.param_groups(cfg.camera_learning_rates)
-        if cfg.pose_refine:
-            depth = None if ds.bounds is None else typical_depth(ds.bounds[ds.train_cameras])
-            self.poses = PoseCorrections(ds.train_cameras, ds.cameras, self.device, depth=depth,
-                                         scale=self.extent if depth is None else depth)
-            groups += self.poses.param_groups(cfg.camera_learning_rates)
-        if groups:
-            for group in groups:
-                group["initial_lr"] = group["lr"]
-            self.camera_optimizer = torch.optim.Adam(groups, eps=1e-15)
-
-    def _load_camera_models(self, state: dict) -> None:
-        """Their state from a checkpoint (left as new where the checkpoint has none: turned on at resume)."""
-        if self.appearance is not None and state.get("appearance") is not None:
-            self.appearance.load_state_dict(state["appearance"])
-        if self.poses is not None and state.get("poses") is not None:
-            self.poses.load_state_dict(state["poses"])
-        saved = state.get("camera_optimizer")
-        if self.camera_optimizer is not None and saved is not None and \
-                len(saved["param_groups"]) == len(self.camera_optimizer.param_groups):
-            self.camera_optimizer.load_state_dict(saved)
-
-    def _lens_falloff(self, camera_index: int) -> Tensor:
-        """(H, W) known vignetting of a training camera (TrainConfig.lens_falloff), cached."""
-        if camera_index not in self._falloffs:
-            self._falloffs[camera_index] = lens_brightness(radial(self.dataset.cameras[camera_index], self.device),
-                                                           self.lens_falloff)
-        return self._falloffs[camera_index]
+    @property
+    def config(self) -> TrainConfig:
+        """The run's settings, its cameras' "auto" ones decided (CameraRig.config)."""
+        return self.rig.config
 
     def refined_cameras(self) -> list[Camera]:
         """The dataset's cameras, the training cameras' poses refined when pose_refine is on."""
-        cams = list(self.dataset.cameras)
-        return cams if self.poses is None else self.poses.refined(cams)
-
-    def _camera_step(self) -> None:
-        """Step the per-camera models (rates decayed to a tenth over the run), keep the appearance's mean
-        the identity and the pose corrections' mean zero."""
-        if self.camera_optimizer is None:
-            return
-        for group in self.camera_optimizer.param_groups:
-            group["lr"] = group["initial_lr"] * 0.1 ** min(self.step / self.steps, 1.0)
-        self.camera_optimizer.step()
-        self.camera_optimizer.zero_grad(set_to_none=True)
-        if self.appearance is not None:
-            self.appearance.center()
-        if self.poses is not None:
-            self.poses.center()
+        return self.rig.refined(self.dataset.cameras)
 
     # -- rendering ------------------------------------------------------------------------------------
     def rays(self, camera_index: int) -> Tensor:
@@ -286,18 +198,11 @@ class Trainer:
         frame_u8 = torch.from_numpy(self.dataset.frame(camera_index, frame))
         return frame_u8.to(self.device, non_blocking=True).float() / 255.0
 
-    @torch.no_grad()
     def canonical_truth(self, camera_index: int, frame: int) -> Tensor:
-        """(H, W, 3) ground truth of a camera as the canonical scene would look: its lens falloff
-        (TrainConfig.lens_falloff) divided out and its appearance undone (CameraAppearance.undo), so that
-        it compares with the canonical render (what guided sampling compares, strategy.guided); the
-        ground truth itself where the cameras are not modelled."""
-        gt = self.ground_truth(camera_index, frame)
-        if self.lens_falloff is not None and camera_index in self.dataset.train_cameras:
-            gt = gt / self._lens_falloff(camera_index)[..., None]
-        if self.appearance is not None:
-            gt = self.appearance.undo(gt, camera_index, self.dataset.cameras[camera_index])
-        return gt
+        """(H, W, 3) ground truth of a camera as the canonical scene would look (CameraRig.canonical), what
+        guided sampling compares with the canonical render (strategy.guided)."""
+        return self.rig.canonical(self.ground_truth(camera_index, frame), camera_index,
+                                  self.dataset.cameras[camera_index])
 
     def _initial_points(self, progress) -> InitialPoints:
         """The initial points, from the frames the dataset shows (not its context frames: those only
@@ -307,23 +212,10 @@ class Trainer:
         apart (docs/training.md, "Real captures")."""
         config = self.config
         shown = shown_frames(self.dataset)
-        brightness = self.initial_brightness()
+        brightness = self.rig.initial_brightness()
         return initial_points(shown.corrected(brightness) if brightness else shown, config.init, config.num_points,
                               self.rng, every=config.init_every, depth_candidates=config.depth_candidates,
                               progress=progress)
-
-    def initial_brightness(self) -> dict[int, np.ndarray]:
-        """{training camera index: (H, W, 3) brightness of its pictures against the canonical scene}
-        (lens.picture_brightness), which the initial points' pictures are divided by: the lens falloff
-        trained with, times the camera's colour gains where the rig's measurement before training found
-        them for an appearance (TrainConfig.camera_gains); {} when there is neither (a clean capture: its
-        initial points are as they were)."""
-        gains = self.config.camera_gains if self.config.appearance is True else None
-        if self.lens_falloff is None and not gains:
-            return {}
-        cameras = self.dataset.cameras
-        return {c: picture_brightness(cameras[c], self.lens_falloff, (gains or {}).get(cameras[c].name))
-                for c in self.dataset.train_cameras}
 
     # -- one step -------------------------------------------------------------------------------------
     def sample_frame(self) -> int:
@@ -348,14 +240,8 @@ class Trainer:
         gaussians = self.params.at(tau)
         images, renders = [], []
         for ci in views:
-            g, rays = (gaussians, self.rays(ci)) if self.poses is None else \
-                self.poses.apply(gaussians, self.rays(ci), ci, ds.cameras[ci])
-            rgb, out = self.render(ds.cameras[ci], tau, g, rays)
-            if self.appearance is not None:
-                rgb = self.appearance.apply(rgb, ci, ds.cameras[ci])
-            if self.lens_falloff is not None:
-                rgb = rgb * self._lens_falloff(ci)[..., None]
-            images.append(rgb)
+            rgb, out = self.render(ds.cameras[ci], tau, *self.rig.view(gaussians, self.rays(ci), ci, ds.cameras[ci]))
+            images.append(self.rig.recorded(rgb, ci, ds.cameras[ci]))
             renders.append((ds.cameras[ci], out))
         img = torch.stack(images)
         gt = torch.stack([self.ground_truth(ci, frame) for ci in views])
@@ -371,86 +257,8 @@ class Trainer:
             strategy.step_post_backward(self.params, self.optimizer, self.step, context)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
-        self._camera_step()
-        if any(self.remeasure.values()) and self.step == max(1, round(self.steps * REMEASURE_AT)):
-            self.remeasure_rig()
+        self.rig.end_step(self.step, lambda camera, f: self.render(camera, frame_time(ds, f)))
         return {"loss": loss.item(), "psnr": psnr_of_mse(max(mse, 1e-12))}
-
-    @torch.no_grad()
-    def remeasure_rig(self, frames=None) -> None:
-        """Measure the rig again through the model's geometry (its depth rendered through the training
-        cameras as it holds them, at `frames`: default the first and the middle frame, as before
-        training; self_calibration.measure_rig_with_depth), as self.remeasure says (remeasure_plan):
-        train on with that lens falloff unless it cannot be measured or trusted, and set each camera's
-        appearance to its measured colour gains and hold it (hold_appearance) unless they stray from
-        what it has learned. self.remeasure_note says what was done."""
-        ds = self.dataset
-        frames = measured_frames(ds) if frames is None else tuple(frames)
-        cameras = self.refined_cameras()
-        depths = {}
-        for c in ds.train_cameras:
-            for f in frames:
-                out = self.render(cameras[c], frame_time(ds, f))[1]
-                depths[c, f] = (out.depth.cpu().numpy(), out.alpha.cpu().numpy())
-        said = f"the rig measured again at step {self.step}, from the model's geometry"
-        try:
-            found = measure_rig_with_depth(ds, cameras, depths, frames)
-        except ValueError as e:
-            self.remeasure_note = f"{said}: {e}; training on as before"
-            return
-        notes = []
-        try:
-            if self.remeasure.get("falloff"):
-                notes.append(self._take_falloff(found))
-        except ValueError as e:  # a geometry that gets the falloff wrong is not trusted with the colours
-            notes.append(f"{e}: not taken")
-        else:
-            if self.remeasure.get("gains") and self.appearance is not None:
-                try:
-                    notes.append(self._take_gains(found))
-                except ValueError as e:
-                    notes.append(f"{e}: not taken")
-        self.remeasure_note = f"{said}: " + "; ".join(notes)
-
-    def _take_falloff(self, found) -> str:
-        """Train on with the falloff of `found` (a GeometricMeasurement); ValueError when it is uncertain,
-        out of range or strays from the flow's (FALLOFF_AGREEMENT)."""
-        flow_corner = 1 + sum(self.lens_falloff)  # the corner brightness measured before training
-        if found.corner_error > UNCERTAIN:
-            raise ValueError(f"its falloff is uncertain (+-{found.corner_error:.3f})")
-        if abs(found.corner_brightness - flow_corner) > FALLOFF_AGREEMENT:
-            raise ValueError(f"its corner brightness {found.corner_brightness:.3f} disagrees with the flow's "
-                             f"{flow_corner:.3f}")
-        k = known_falloff(found.k)
-        self.lens_falloff, self._falloffs = k, {}
-        self.config = replace(self.config, lens_falloff=k)
-        return (f"lens falloff K1 {k[0]:.3f}, K2 {k[1]:.3f} (corner brightness {found.corner_brightness:.3f}; was "
-                f"{flow_corner:.3f} from the flow)")
-
-    def _take_gains(self, found) -> str:
-        """Hold the appearance at the colour gains of `found`, unless they stray from the diagonals it has
-        learned by more than GAIN_AGREEMENT (RMS of the logs, each channel's mean over the cameras
-        removed): a model whose geometry is not yet the scene's."""
-        learned = np.array([np.diag(a["matrix"]) for a in self.appearance.summary()])
-        if np.any(learned <= 0):
-            raise ValueError("the appearance learned so far has a colour gain at or below 0")
-        stray = np.log(found.gains) - np.log(learned)
-        stray = float(np.sqrt(np.mean((stray - stray.mean(0)) ** 2)))
-        if stray > GAIN_AGREEMENT:
-            raise ValueError(f"its colour gains differ from the ones learned by {100 * stray:.1f} % (RMS)")
-        self.hold_appearance(found.gains)
-        return f"the cameras' colours set from it and held (they differed from the ones learned by {100 * stray:.1f} %)"
-
-    def hold_appearance(self, gains: np.ndarray) -> None:
-        """Set each training camera's colour transform to its measured gains (CameraAppearance.set_gains;
-        gains (C, 3) in train_cameras order) and hold it for the rest of the run: what Adam learns of
-        them stays about 1 % off the truth, where these are within 0.1 % (docs/training.md)."""
-        self.appearance.set_gains(gains)
-        for group in self.camera_optimizer.param_groups:
-            if group["name"] in ("appearance_matrix", "appearance_bias"):
-                group["initial_lr"] = group["lr"] = 0.0
-                for param in group["params"]:
-                    self.camera_optimizer.state.pop(param, None)
 
     def train(self, progress: bool = True, callback: Callable[["Trainer"], None] | None = None) -> None:
         """Run to self.steps, checkpointing every config.checkpoint_every steps and at the end.
@@ -500,10 +308,7 @@ class Trainer:
                 "strategies": [s.state_dict() for s in self.strategies], "box": self.box.tolist(),
                 "history": self.history, "seconds": self.seconds,
                 "bounds": None if self.dataset.bounds is None else self.dataset.bounds.tolist(),
-                "bounds_source": self.dataset.bounds_source, "remeasure": self.remeasure,
-                "appearance": None if self.appearance is None else self.appearance.state_dict(),
-                "poses": None if self.poses is None else self.poses.state_dict(),
-                "camera_optimizer": None if self.camera_optimizer is None else self.camera_optimizer.state_dict(),
+                "bounds_source": self.dataset.bounds_source, **self.rig.state_dict(),
                 "rng": {"numpy": self.rng.bit_generator.state, "torch": torch.get_rng_state(),
                         "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
                         "python": random.getstate()}}

@@ -5,6 +5,8 @@
 - optional backends stay in their own module: gsplat only in stg_train.render.gsplat_backend, CuPy only
   in stg_runtime.cuda.device, Ray only in stg_train.distributed.ray_cluster, viser only in
   stg_runtime.viewer.server;
+- the rig's modelling (stg_train.rig) sits below the loop: it imports no trainer, strategy, splatter,
+  pipeline or command line, and only the trainer builds a CameraRig;
 - Player(device="cpu") renders without importing numba.cuda, torch, onnx or the viewer (viser).
 """
 from __future__ import annotations
@@ -114,6 +116,19 @@ def test_optional_backends_stay_in_their_modules():
     assert _offenders({"cupy"}, lambda m: m != "stg_runtime.cuda.device") == []
     assert _offenders({"ray"}, lambda m: m != "stg_train.distributed.ray_cluster") == []
     assert _offenders({"viser"}, lambda m: m != "stg_runtime.viewer.server") == []
+
+
+#: What stg_train.rig may import of stg_train: its own modules and the layers below the training loop.
+RIG_MAY_IMPORT = ("stg_train.rig", "stg_train.data", "stg_train.config", "stg_train.metrics", "stg_train.rotations")
+
+
+def test_the_rig_sits_below_the_training_loop():
+    above = [f"{module}:{line} imports {imported}" for module in MODULES if module.startswith("stg_train.rig")
+             for imported, line in _imports(module)
+             if imported.startswith("stg_train") and not imported.startswith(RIG_MAY_IMPORT)]
+    assert above == []
+    builders = {m for m in MODULES if "stg_train.rig.camera_rig" in _graph()[m]} - {"stg_train.rig"}
+    assert builders == {"stg_train.trainer"}
 
 
 CPU_PLAYER = r"""

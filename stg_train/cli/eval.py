@@ -24,7 +24,7 @@ evaluated frames by more than --dynamic-threshold in some colour channel: moving
 or vanishes, their shadows) and the static rest; docs/dynamic.md explains the measure.
 
 With --align-poses, each held-out camera's pose is first aligned to its pictures against the model
-(stg_train.pose_align: Gauss-Newton over a rotation and a shift on 4 frames, an affine colour map
+(stg_train.rig.pose_align: Gauss-Newton over a rotation and a shift on 4 frames, an affine colour map
 fitted alongside; the pose only is kept) and the line "CAM's pose aligned to its pictures: moved ..."
 says how far; the JSON keeps the aligned poses under "aligned_poses". A real capture's held-out camera
 is calibrated no better than its training cameras, and a model trained with pose refinement sits in a

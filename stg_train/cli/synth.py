@@ -90,12 +90,12 @@ def _nonnegative_float(text: str) -> float:
 
 
 def _add_capture_options(p: argparse.ArgumentParser) -> None:
-    from ..capture import CaptureModel  # numpy only
+    from ..rig.capture import CaptureModel  # numpy only
 
     defaults = CaptureModel()
     group = p.add_argument_group(
         "realistic capture (N3V layout)",
-        "--realistic records the frames as a real rig would (stg_train.capture.CaptureModel): per-camera "
+        "--realistic records the frames as a real rig would (stg_train.rig.capture.CaptureModel): per-camera "
         "exposure and white balance, lens vignetting, sensor noise, and poses_bounds.npy states slightly wrong "
         "poses; scene.json keeps the truth (each camera's effects and true pose) under \"capture\". Each knob "
         "implies --realistic; 0 turns its effect off. The per-camera values are drawn from --seed.")
@@ -110,7 +110,7 @@ def _capture(args):
     knobs = {name: getattr(args, option[2:].replace("-", "_")) for option, (name, _, _) in CAPTURE_KNOBS.items()}
     if not args.realistic and all(v is None for v in knobs.values()):
         return None
-    from ..capture import CaptureModel
+    from ..rig.capture import CaptureModel
 
     return CaptureModel(seed=args.seed, **{k: v for k, v in knobs.items() if v is not None})
 

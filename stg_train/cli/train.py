@@ -9,7 +9,7 @@ from pathlib import Path
 
 from ..choices import INIT_METHODS, MOTION_INITS
 from ..config import DEMO_SCENE, DEMO_TRAINING, TrainConfig
-from ..lens import known_falloff
+from ..rig.lens import known_falloff
 from .common import (Parser, add_dataset_options, check_dataset_options, dataset_options, error, format_table,
                      given_options, nonnegative_int, port, positive_int)
 

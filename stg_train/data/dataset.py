@@ -157,7 +157,7 @@ class Dataset:
 
     def corrected(self, brightness: dict) -> "Dataset":
         """A view whose `image` of camera c is divided by brightness[c] ((H, W, 3) or (3,) float32: the
-        camera's lens falloff times its colour gains, stg_train.lens.picture_brightness), so that its
+        camera's lens falloff times its colour gains, stg_train.rig.lens.picture_brightness), so that its
         pictures agree with each other as the canonical scene would (cameras not in `brightness` as they
         are); `frame` still gives the pictures as captured. This dataset is left as it is."""
         view = copy.copy(self)

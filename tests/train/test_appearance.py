@@ -1,4 +1,4 @@
-"""Per-camera appearance and pose refinement (stg_train.appearance, stg_train.pose_refine): real training
+"""Per-camera appearance and pose refinement (stg_train.rig.appearance, stg_train.rig.pose_refine): real training
 on a tiny realistic capture undoes a known per-camera gain, the cameras' mean transform stays the
 identity, the export holds the canonical scene and the refined cameras, an injected pose error is
 recovered through the transform of the means, and checkpoints resume with both."""
@@ -13,14 +13,14 @@ torch = pytest.importorskip("torch")
 
 from stg_runtime.camera import Camera, load_camera_path  # noqa: E402
 from stg_runtime.player import Player  # noqa: E402
-from stg_train.appearance import CameraAppearance  # noqa: E402
-from stg_train.capture import CameraEffects, CaptureModel, capture_record, pose_error, pose_errors  # noqa: E402
+from stg_train.rig.appearance import CameraAppearance  # noqa: E402
+from stg_train.rig.capture import CameraEffects, CaptureModel, capture_record, pose_error, pose_errors  # noqa: E402
 from stg_train.cli.synth import main as synth_main  # noqa: E402
 from stg_train.data import load_n3v  # noqa: E402
 from stg_train.export import export_trainer  # noqa: E402
-from stg_train.lens import known_falloff  # noqa: E402
+from stg_train.rig.lens import known_falloff  # noqa: E402
 from stg_train.params import Gaussians  # noqa: E402
-from stg_train.pose_refine import PoseCorrections  # noqa: E402
+from stg_train.rig.pose_refine import PoseCorrections  # noqa: E402
 from stg_train.render import rasterize  # noqa: E402
 from stg_train.synthetic import SyntheticScene, write_n3v  # noqa: E402
 from stg_train.trainer import Trainer, TrainConfig  # noqa: E402
@@ -52,7 +52,7 @@ def test_appearance_undoes_a_known_per_camera_gain(trained, gain_capture):
     ds = trained.dataset
     gains = np.array([c["gain"] for c in capture_record(gain_capture)["cameras"]])[ds.train_cameras]
     truth = gains / gains.mean()  # the cameras' mean transform is the identity: gains relative to their mean
-    learned = np.array([np.mean(np.diag(s["matrix"])) for s in trained.appearance.summary()])
+    learned = np.array([np.mean(np.diag(s["matrix"])) for s in trained.rig.appearance.summary()])
     before, after = np.abs(truth - 1).mean(), np.abs(truth - learned).mean()
     print(f"relative gains {truth.round(3)}, learned {learned.round(3)}: error {before:.3f} -> {after:.3f}")
     assert after < 0.5 * before
@@ -60,7 +60,7 @@ def test_appearance_undoes_a_known_per_camera_gain(trained, gain_capture):
 
 
 def test_the_cameras_mean_transform_stays_the_identity(trained):
-    summary = trained.appearance.summary()
+    summary = trained.rig.appearance.summary()
     np.testing.assert_allclose(np.mean([s["matrix"] for s in summary], axis=0), np.eye(3), atol=1e-5)
     np.testing.assert_allclose(np.mean([s["bias"] for s in summary], axis=0), 0.0, atol=1e-6)
     # and the transforms did move: the mean is held by the projection, not by standing still
@@ -77,7 +77,7 @@ def test_the_export_renders_the_canonical_scene(trained, tmp_path):
     np.testing.assert_allclose(player.render(cam, 0.0), canonical, atol=2e-2)
     # the appearance is not in the file: the camera's transformed render differs from what the player draws
     with torch.no_grad():
-        recorded = trained.appearance.apply(torch.as_tensor(canonical), ds.train_cameras[0], cam).numpy()
+        recorded = trained.rig.appearance.apply(torch.as_tensor(canonical), ds.train_cameras[0], cam).numpy()
     assert np.abs(recorded - canonical).mean() > 5e-3
     assert [c.name for c in player.cameras] == [c.name for c in ds.cameras]
     for a, b in zip(player.cameras, ds.cameras):  # no pose refinement: the stated cameras
@@ -115,10 +115,10 @@ def test_guided_sampling_compares_the_pictures_as_the_canonical_scene_would_look
     trainer = Trainer(dataset, TrainConfig(iterations=3, num_points=300, appearance=True, lens_falloff=(-0.3, 0.0)))
     ci = dataset.train_cameras[0]
     with torch.no_grad():
-        trainer.appearance.matrix[ci].mul_(1.2)
-        trainer.appearance.bias[ci].add_(0.02)
+        trainer.rig.appearance.matrix[ci].mul_(1.2)
+        trainer.rig.appearance.bias[ci].add_(0.02)
     canonical = trainer.canonical_truth(ci, 2)
-    recorded = trainer.appearance.apply(canonical, ci, dataset.cameras[ci]) * trainer._lens_falloff(ci)[..., None]
+    recorded = trainer.rig.appearance.apply(canonical, ci, dataset.cameras[ci]) * trainer.rig.falloff_map(ci)[..., None]
     torch.testing.assert_close(recorded, trainer.ground_truth(ci, 2), atol=1e-5, rtol=1e-5)
     assert (canonical - trainer.ground_truth(ci, 2)).abs().mean() > 0.02
     plain = Trainer(dataset, TrainConfig(iterations=3, num_points=300, appearance=False, lens_falloff=None))
@@ -247,14 +247,14 @@ def test_checkpoints_resume_with_appearance_and_pose_refinement(gain_capture, tm
     with pytest.raises(_Killed):
         run.train(progress=False, callback=kill)
     resumed = Trainer.resume(dataset, tmp_path / "b" / "checkpoint.pt")
-    assert resumed.step == 8 and resumed.appearance is not None and resumed.poses is not None
+    assert resumed.step == 8 and resumed.rig.appearance is not None and resumed.rig.poses is not None
     resumed.train(progress=False)
     for key in ("matrix", "bias", "falloff"):
-        assert torch.equal(straight.appearance.state_dict()[key], resumed.appearance.state_dict()[key])
+        assert torch.equal(straight.rig.appearance.state_dict()[key], resumed.rig.appearance.state_dict()[key])
     for key in ("rotation", "translation"):
-        a, b = straight.poses.state_dict()[key], resumed.poses.state_dict()[key]
+        a, b = straight.rig.poses.state_dict()[key], resumed.rig.poses.state_dict()[key]
         assert torch.equal(a, b) and a.abs().max() > 0
-    sa, sb = straight.camera_optimizer.state_dict(), resumed.camera_optimizer.state_dict()
+    sa, sb = straight.rig.optimizer.state_dict(), resumed.rig.optimizer.state_dict()
     for k in sa["state"]:
         assert torch.equal(sa["state"][k]["exp_avg"], sb["state"][k]["exp_avg"])
     # the exported file stores the refined training cameras and the held-out camera as stated

@@ -1,4 +1,4 @@
-"""stg_train.capture: a realistic capture of the synthetic scene (exposure, white balance, vignetting,
+"""stg_train.rig.capture: a realistic capture of the synthetic scene (exposure, white balance, vignetting,
 noise, pose error) and its record in scene.json."""
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from stg_runtime.camera import Camera
-from stg_train.capture import CameraEffects, CaptureModel
+from stg_train.rig.capture import CameraEffects, CaptureModel
 from stg_train.data import load_n3v
 from stg_train.synthetic import SyntheticScene, write_n3v
 

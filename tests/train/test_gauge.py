@@ -1,4 +1,4 @@
-"""stg_train.gauge: the similarity of the whole world that pictures cannot reveal is found in small pose
+"""stg_train.rig.gauge: the similarity of the whole world that pictures cannot reveal is found in small pose
 corrections, and only it; pose refinement projects it out (PoseCorrections.center); pose errors
 against a truth are reported with it removed (capture.pose_errors)."""
 from __future__ import annotations
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from stg_runtime.camera import Camera
-from stg_train.capture import in_model_frame, pose_errors
-from stg_train.gauge import corrections_between, gauge_part, gauge_projector
+from stg_train.rig.capture import in_model_frame, pose_errors
+from stg_train.rig.gauge import corrections_between, gauge_part, gauge_projector
 from stg_train.rotations import rotation_from_axis_angle, rotation_vector
 
 
@@ -143,7 +143,7 @@ def test_the_projector_is_gauge_part_as_one_matrix():
 
 def test_pose_refinement_projects_the_gauge_out():
     torch = pytest.importorskip("torch")
-    from stg_train.pose_refine import PoseCorrections
+    from stg_train.rig.pose_refine import PoseCorrections
 
     rig = _rig()
     cams = [Camera(50, 50, 32, 24, 64, 48, w, name=f"c{i}") for i, w in enumerate(rig)]

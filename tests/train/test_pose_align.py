@@ -1,11 +1,11 @@
-"""Photometric pose alignment (stg_train.pose_align) against the ray-traced synthetic scene: a camera
+"""Photometric pose alignment (stg_train.rig.pose_align) against the ray-traced synthetic scene: a camera
 posed slightly off is brought back onto the pose its pictures were taken from, measured in the pictures
 (how far the scene's surface moves between the true and the aligned camera)."""
 import numpy as np
 import pytest
 
-from stg_train.capture import corrected, pose_error
-from stg_train.pose_align import align_pose
+from stg_train.rig.capture import corrected, pose_error
+from stg_train.rig.pose_align import align_pose
 from stg_train.synthetic import SyntheticScene
 
 

@@ -1,6 +1,6 @@
-"""The rig measured from its own pictures before training (stg_train.self_calibration): its lenses'
+"""The rig measured from its own pictures before training (stg_train.rig.self_calibration): its lenses'
 falloff, its cameras' colour gains and their stated poses against the epipolar lines, on synthetic
-captures whose truth is known (stg_train.capture), and what training decides from it ("auto")."""
+captures whose truth is known (stg_train.rig.capture), and what training decides from it ("auto")."""
 import copy
 import json
 from dataclasses import asdict, replace
@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 import torch
 
-from stg_train.capture import CaptureModel, with_vignetting
+from stg_train.rig.capture import CaptureModel, with_vignetting
 from stg_train.config import TrainConfig
 from stg_train.data import load_n3v
 from stg_train.data.dataset import Dataset
 from stg_train.rotations import rotation_from_axis_angle
-from stg_train.self_calibration import (EPIPOLAR, GAIN_SPREAD, _epipolar_distances, _Match, calibrate_rig,
+from stg_train.rig.self_calibration import (EPIPOLAR, GAIN_SPREAD, _epipolar_distances, _Match, calibrate_rig,
                                         measure_rig_with_depth, measure_rig)
 from stg_train.synthetic import SyntheticScene, write_n3v
 from stg_train.trainer import Trainer
@@ -138,11 +138,11 @@ def test_pictures_with_nothing_to_match_are_refused():
 def test_the_trainer_measures_auto_and_trains_with_the_numbers(realistic):
     dataset, _ = realistic
     trainer = Trainer(dataset, TrainConfig(iterations=1, num_points=500))  # the defaults: "auto"
-    assert trainer.calibration is not None
-    assert trainer.config.lens_falloff == trainer.calibration.estimate.k == trainer.lens_falloff
-    assert trainer.config.appearance is True and trainer.appearance is not None
-    assert trainer.config.pose_refine is True and trainer.poses is not None
-    assert not trainer.appearance.vignetting  # the falloff is known now: the cameras learn none
+    assert trainer.rig.calibration is not None
+    assert trainer.config.lens_falloff == trainer.rig.calibration.estimate.k == trainer.rig.lens_falloff
+    assert trainer.config.appearance is True and trainer.rig.appearance is not None
+    assert trainer.config.pose_refine is True and trainer.rig.poses is not None
+    assert not trainer.rig.appearance.vignetting  # the falloff is known now: the cameras learn none
 
 
 def test_stg_train_says_what_it_measured_and_a_resumed_run_keeps_it(realistic, tmp_path, capsys):
@@ -236,46 +236,46 @@ def test_a_geometry_that_matches_nothing_is_refused(clean):
 
 
 def test_the_trainer_measures_the_falloff_again_a_third_of_the_way(vignetting_only, tmp_path, monkeypatch):
-    import stg_train.trainer as trainer_module
+    import stg_train.rig.remeasure as remeasure_module
 
     seen = {}
     def geometry(dataset, cameras, depths, frames):  # the model's geometry after 2 steps is not the scene's yet
         seen.update(step=trainer.step, frames=frames, cameras=len(depths))
         return measure_rig_with_depth(dataset, cameras, _true_depths(dataset), frames)
 
-    monkeypatch.setattr(trainer_module, "measure_rig_with_depth", geometry)
+    monkeypatch.setattr(remeasure_module, "measure_rig_with_depth", geometry)
     trainer = Trainer(vignetting_only, TrainConfig(iterations=6, num_points=500), out_dir=tmp_path)
-    flow_k = trainer.lens_falloff
+    flow_k = trainer.rig.lens_falloff
     trainer.train(progress=False)
     assert seen == {"step": 2, "frames": (0, 1), "cameras": 2 * 11}
-    assert trainer.config.lens_falloff == trainer.lens_falloff != flow_k
-    assert abs(1 + sum(trainer.lens_falloff) - 0.7) < 0.01
-    assert trainer.remeasure_note.startswith("the rig measured again at step 2, from the model's geometry: lens falloff K1")
-    assert trainer.remeasure == {"falloff": True, "gains": False}  # no appearance learned: the colours agree
+    assert trainer.config.lens_falloff == trainer.rig.lens_falloff != flow_k
+    assert abs(1 + sum(trainer.rig.lens_falloff) - 0.7) < 0.01
+    assert trainer.rig.remeasure_note.startswith("the rig measured again at step 2, from the model's geometry: lens falloff K1")
+    assert trainer.rig.remeasure == {"falloff": True, "gains": False}  # no appearance learned: the colours agree
     resumed = Trainer.resume(vignetting_only, tmp_path / "checkpoint.pt")
-    assert resumed.lens_falloff == trainer.lens_falloff and resumed.remeasure == trainer.remeasure
+    assert resumed.rig.lens_falloff == trainer.rig.lens_falloff and resumed.rig.remeasure == trainer.rig.remeasure
     seen.clear()
     given = Trainer(vignetting_only, TrainConfig(iterations=3, num_points=500, lens_falloff=(-0.3, 0.0)))
     given.train(progress=False)
-    assert not any(given.remeasure.values()) and given.remeasure_note is None and seen == {}  # a known falloff stays
+    assert not any(given.rig.remeasure.values()) and given.rig.remeasure_note is None and seen == {}  # a known falloff stays
 
 
 def test_a_measurement_again_that_disagrees_keeps_the_flows(vignetting_only, monkeypatch):
-    import stg_train.trainer as trainer_module
-    from stg_train.self_calibration import GeometricMeasurement
+    import stg_train.rig.remeasure as remeasure_module
+    from stg_train.rig.self_calibration import GeometricMeasurement
 
-    monkeypatch.setattr(trainer_module, "measure_rig_with_depth",
+    monkeypatch.setattr(remeasure_module, "measure_rig_with_depth",
                         lambda *args: GeometricMeasurement((-0.6, 0.0), 0.001, 50_000, np.ones((11, 3))))  # far from the flow's
     trainer = Trainer(vignetting_only, TrainConfig(iterations=3, num_points=500))
-    flow_k = trainer.lens_falloff
+    flow_k = trainer.rig.lens_falloff
     trainer.train(progress=False)
-    assert trainer.lens_falloff == flow_k == trainer.config.lens_falloff
-    assert "disagrees with the flow's" in trainer.remeasure_note
+    assert trainer.rig.lens_falloff == flow_k == trainer.config.lens_falloff
+    assert "disagrees with the flow's" in trainer.rig.remeasure_note
 
 
 def _true_cameras(dataset):
-    """The dataset's cameras at the true poses its capture record keeps (stg_train.capture)."""
-    from stg_train.capture import capture_record
+    """The dataset's cameras at the true poses its capture record keeps (stg_train.rig.capture)."""
+    from stg_train.rig.capture import capture_record
 
     truth = {c["name"]: np.asarray(c["true_world_to_camera"]) for c in capture_record(dataset.path)["cameras"]}
     return [replace(c, world_to_camera=truth[c.name]) for c in dataset.cameras]
@@ -301,58 +301,58 @@ def replace_cameras(dataset, cameras):
 
 
 def test_the_appearance_is_set_from_the_measured_gains_and_held(realistic, monkeypatch):
-    import stg_train.trainer as trainer_module
-    from stg_train.self_calibration import GeometricMeasurement
+    import stg_train.rig.remeasure as remeasure_module
+    from stg_train.rig.self_calibration import GeometricMeasurement
 
     dataset, _ = realistic
     taken = {}
     def measured(ds, cameras, depths, frames):  # the gains learned so far, each within 2 %
-        learned = np.array([np.diag(a["matrix"]) for a in trainer.appearance.summary()])
+        learned = np.array([np.diag(a["matrix"]) for a in trainer.rig.appearance.summary()])
         taken["gains"] = learned * np.exp(np.random.default_rng(1).uniform(-0.02, 0.02, learned.shape))
         return GeometricMeasurement((-0.29, -0.01), 0.001, 50_000, taken["gains"])
 
-    monkeypatch.setattr(trainer_module, "measure_rig_with_depth", measured)
+    monkeypatch.setattr(remeasure_module, "measure_rig_with_depth", measured)
     trainer = Trainer(dataset, TrainConfig(iterations=6, num_points=500))
-    assert trainer.appearance is not None and abs(1 + sum(trainer.lens_falloff) - 0.7) < 0.04
+    assert trainer.rig.appearance is not None and abs(1 + sum(trainer.rig.lens_falloff) - 0.7) < 0.04
     trainer.train(progress=False)
     expected = taken["gains"] / taken["gains"].mean(0)
     for c, row in zip(dataset.train_cameras, expected):
-        np.testing.assert_allclose(trainer.appearance.matrix[c].detach().numpy(), np.diag(row), atol=1e-6)  # held
-        assert not trainer.appearance.bias[c].detach().abs().any()
-    assert trainer.lens_falloff == (-0.29, -0.01)
-    assert trainer.remeasure == {"falloff": True, "gains": True}
-    assert "lens falloff K1 -0.290" in trainer.remeasure_note
-    assert "the cameras' colours set from it and held" in trainer.remeasure_note
+        np.testing.assert_allclose(trainer.rig.appearance.matrix[c].detach().numpy(), np.diag(row), atol=1e-6)  # held
+        assert not trainer.rig.appearance.bias[c].detach().abs().any()
+    assert trainer.rig.lens_falloff == (-0.29, -0.01)
+    assert trainer.rig.remeasure == {"falloff": True, "gains": True}
+    assert "lens falloff K1 -0.290" in trainer.rig.remeasure_note
+    assert "the cameras' colours set from it and held" in trainer.rig.remeasure_note
 
 
 def test_colours_without_a_falloff_are_measured_again_and_held(tmp_path, monkeypatch):
-    import stg_train.trainer as trainer_module
-    from stg_train.self_calibration import GeometricMeasurement
+    import stg_train.rig.remeasure as remeasure_module
+    from stg_train.rig.self_calibration import GeometricMeasurement
 
     capture = CaptureModel(vignetting=0, noise=0, rotation_deg=0, translation=0)  # exposure and white balance alone
     dataset, _ = _capture(tmp_path / "data", capture)
     trainer = Trainer(dataset, TrainConfig(iterations=6, num_points=500))
-    assert trainer.lens_falloff is None and trainer.appearance is not None  # no falloff measured, colours learned
-    assert trainer.remeasure == {"falloff": False, "gains": True}
+    assert trainer.rig.lens_falloff is None and trainer.rig.appearance is not None  # no falloff measured, colours learned
+    assert trainer.rig.remeasure == {"falloff": False, "gains": True}
     learned = {}
     def measured(ds, cameras, depths, frames):  # the gains the appearance has learned, 2 % off for one camera
-        gains = np.array([np.diag(a["matrix"]) for a in trainer.appearance.summary()])
+        gains = np.array([np.diag(a["matrix"]) for a in trainer.rig.appearance.summary()])
         gains[0] *= 1.02
         learned["gains"] = gains
         return GeometricMeasurement((0.0, 0.0), 0.001, 50_000, gains)
 
-    monkeypatch.setattr(trainer_module, "measure_rig_with_depth", measured)
+    monkeypatch.setattr(remeasure_module, "measure_rig_with_depth", measured)
     trainer.train(progress=False)
     expected = learned["gains"] / learned["gains"].mean(0)
     for c, row in zip(dataset.train_cameras, expected):
-        np.testing.assert_allclose(np.diag(trainer.appearance.matrix[c].detach().numpy()), row, atol=1e-6)
-    assert trainer.lens_falloff is None and "colours set from it and held" in trainer.remeasure_note
+        np.testing.assert_allclose(np.diag(trainer.rig.appearance.matrix[c].detach().numpy()), row, atol=1e-6)
+    assert trainer.rig.lens_falloff is None and "colours set from it and held" in trainer.rig.remeasure_note
     # gains far from what was learned (a model whose geometry is not the scene's) are not taken
-    monkeypatch.setattr(trainer_module, "measure_rig_with_depth",
+    monkeypatch.setattr(remeasure_module, "measure_rig_with_depth",
                         lambda *args: GeometricMeasurement((0.0, 0.0), 0.001, 50_000, np.exp(np.eye(11, 3))))
     other = Trainer(dataset, TrainConfig(iterations=6, num_points=500))
     other.train(progress=False)
-    assert "differ from the ones learned" in other.remeasure_note and other.camera_optimizer.param_groups[0]["lr"] > 0
+    assert "differ from the ones learned" in other.rig.remeasure_note and other.rig.optimizer.param_groups[0]["lr"] > 0
 
 
 def _on_the_surface(dataset, cameras, points, tolerance: float = 0.02) -> float:
@@ -377,19 +377,19 @@ def _on_the_surface(dataset, cameras, points, tolerance: float = 0.02) -> float:
 
 def test_the_initial_points_match_the_pictures_as_the_canonical_scene_would_look(realistic, clean):
     from stg_train.data.points import initial_points
-    from stg_train.lens import lens_brightness
+    from stg_train.rig.lens import lens_brightness
 
     dataset, _ = realistic
     trainer = Trainer(dataset, TrainConfig(iterations=3, num_points=500))
-    brightness = trainer.initial_brightness()  # the falloff trained with, times the gains measured
-    gains = trainer.calibration.estimate.gains
+    brightness = trainer.rig.initial_brightness()  # the falloff trained with, times the gains measured
+    gains = trainer.rig.calibration.estimate.gains
     assert trainer.config.camera_gains == {dataset.cameras[c].name: tuple(gains[n])
                                            for n, c in enumerate(dataset.train_cameras)}
     assert sorted(brightness) == dataset.train_cameras
     for n, c in enumerate(dataset.train_cameras):
         camera = dataset.cameras[c]
         np.testing.assert_allclose(brightness[c][int(camera.cy), int(camera.cx)], gains[n], rtol=0.01)
-        np.testing.assert_allclose(brightness[c][0, 0], lens_brightness(1.0, trainer.lens_falloff) * gains[n], rtol=0.02)
+        np.testing.assert_allclose(brightness[c][0, 0], lens_brightness(1.0, trainer.rig.lens_falloff) * gains[n], rtol=0.02)
     corrected = dataset.corrected(brightness)
     drawn = initial_points(corrected, "volume", 500, np.random.default_rng(0), depth_candidates=64)
     np.testing.assert_array_equal(trainer.initial.xyz, drawn.xyz)  # the trainer's are drawn from these pictures
@@ -407,4 +407,4 @@ def test_the_initial_points_match_the_pictures_as_the_canonical_scene_would_look
                                                                       depth_candidates=64))
     assert after > before + 0.15 and after > reference - 0.15, (before, after, reference)
     plain = Trainer(clean, TrainConfig(iterations=3, num_points=500))
-    assert plain.initial_brightness() == {} and plain.config.camera_gains is None  # nothing to correct
+    assert plain.rig.initial_brightness() == {} and plain.config.camera_gains is None  # nothing to correct

@@ -14,7 +14,7 @@ measures:
    backwards, the picture is smooth (no edge to misalign) and neither colour is clipped.
 2. Every such pixel pair gives, per channel, log I_c - log I_c' = g_c - g_c' + log V(s) - log V(s'),
    with g the cameras' log colour gains (exposure and white balance), s the squared distance from the
-   principal point over its value at the farthest corner (stg_train.lens), and log V(s) = a1 s + a2 s^2.
+   principal point over its value at the farthest corner (stg_train.rig.lens), and log V(s) = a1 s + a2 s^2.
    That is linear in (g, a1, a2): iteratively reweighted least squares (Cauchy weights) with the gains'
    sum held at 0 (only gains relative to the rig's mean can be told from its pictures).
 3. The pictures are corrected by the estimate and the flow is computed again (`rounds` times): the
@@ -45,7 +45,7 @@ from typing import Callable, NamedTuple
 import cv2
 import numpy as np
 
-from .config import SAVED_BEFORE_AUTO
+from ..config import SAVED_BEFORE_AUTO
 from .lens import known_falloff, lens_brightness, radial_grid
 
 #: Flow pairs kept only where forward and backward flow agree to this many pixels (of the scaled image).

@@ -12,7 +12,7 @@ opacities and features unchanged; the decoder's view inputs become the refined c
 keep their stated pose.
 
 After every step `center` removes from the corrections their part that is a similarity of the whole
-world (stg_train.gauge): seven freedoms that pictures cannot reveal, in which the corrections would
+world (stg_train.rig.gauge): seven freedoms that pictures cannot reveal, in which the corrections would
 otherwise drift and take the scene with them (a drift in scale, invisible to the training cameras,
 moves the picture of a view away from the rig). The scene stays where the stated poses put it, at their
 scale.

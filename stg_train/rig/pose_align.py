@@ -2,12 +2,12 @@
 renders best match that camera's pictures, the model held fixed (test-time pose optimisation, as BARF
 and NeRF-- score the views of a pose-refining method).
 
-Why: pictures fix a model only up to a similarity of the world (stg_train.gauge), and a model trained
+Why: pictures fix a model only up to a similarity of the world (stg_train.rig.gauge), and a model trained
 on slightly wrong poses is also slightly bent against the truth, so a view posed in another frame (the
 truth's, or a calibration's) lands a fraction of a pixel off the model's own picture of that place.
 Aligned, a view is scored on what the model shows rather than on where it sits.
 
-The correction D (4x4, camera coordinates, the convention of stg_train.gauge and pose_refine) is the
+The correction D (4x4, camera coordinates, the convention of stg_train.rig.gauge and pose_refine) is the
 rotation exp([w]x) (axis-angle w, radians) followed by the shift t (world units): the aligned camera is
 D W. Each Gauss-Newton step solves for (w, t / depth) from the renders' Jacobian, taken by central
 differences of renders (any renderer serves: no gradient with respect to the camera is needed), the
@@ -24,8 +24,8 @@ import numpy as np
 
 from stg_runtime.camera import Camera
 
+from ..metrics import affine_moments
 from .capture import corrected
-from .metrics import affine_moments
 
 #: Central-difference step of the parameters, in pixels that it moves the picture by (the step in
 #: radians, and in units of the scene's depth, is this over the focal length): a secant over half a pixel

@@ -1,6 +1,6 @@
 """A lens's radial brightness falloff (vignetting), `1 + k1 s + k2 s^2` with s the squared distance from
 the principal point over its value at the farthest image corner (appearance.radial): the polynomial
-once, for the falloff the cameras learn (stg_train.appearance) and the one given as known
+once, for the falloff the cameras learn (stg_train.rig.appearance) and the one given as known
 (TrainConfig.lens_falloff, `stg-train --lens-falloff`), s over a picture's pixels (`radial_grid`), a
 picture's brightness against the canonical scene's (`picture_brightness`), and the range a known one
 must keep. Imports nothing at load (numpy only inside the functions that make arrays), so the command

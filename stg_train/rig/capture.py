@@ -18,7 +18,7 @@ The pose error is a rotation of `rotation_deg` degrees about a random axis and a
 
 `with_vignetting` gives a dataset some lenses of their own (a rig whose lenses differ).
 `in_model_frame` places a camera known in the true world where a model trained on the perturbed poses
-sees it (pictures fix a model only up to a similarity of the world: stg_train.gauge).
+sees it (pictures fix a model only up to a similarity of the world: stg_train.rig.gauge).
 """
 from __future__ import annotations
 
@@ -28,9 +28,9 @@ import numpy as np
 
 from stg_runtime.camera import Camera
 
+from ..rotations import rotation_from_axis_angle
 from .gauge import corrections_between, fit_similarity
 from .lens import radial_grid
-from .rotations import rotation_from_axis_angle
 
 
 @dataclass(frozen=True)
@@ -163,7 +163,7 @@ def pose_errors(cameras, record: dict, names=None, depth: float | None = None) -
     (means over those cameras), "max_rotation_deg", "max_translation", "cameras" (name -> (degrees,
     distance)); with three cameras or more also "aligned_rotation_deg" and "aligned_translation": the
     means once the part of the errors that moves the whole rig alike (a similarity of the world, which
-    pictures cannot reveal: stg_train.gauge) is removed, to first order, the similarity fitted in the
+    pictures cannot reveal: stg_train.rig.gauge) is removed, to first order, the similarity fitted in the
     pictures of points at `depth` (world units, the scene's: data.bounds.typical_depth; default the
     rig's radius, which lets the cameras' shifts decide the rig's turn: gauge.fit_similarity)."""
     truth = {c["name"]: c["true_world_to_camera"] for c in record["cameras"]}
@@ -203,7 +203,7 @@ def in_model_frame(cameras, model_poses: np.ndarray, true_poses: np.ndarray, dep
 
 def corrected(camera: Camera, rotation, translation) -> Camera:
     """The camera with world_to_camera D W: D the rigid correction in camera coordinates, the rotation
-    exp([rotation]x) (axis-angle (3,), radians) then the translation (3,) world units (stg_train.gauge's
+    exp([rotation]x) (axis-angle (3,), radians) then the translation (3,) world units (stg_train.rig.gauge's
     convention)."""
     delta = np.eye(4)
     delta[:3, :3], delta[:3, 3] = rotation_from_axis_angle(rotation), translation
@@ -212,9 +212,9 @@ def corrected(camera: Camera, rotation, translation) -> Camera:
 
 def with_vignetting(dataset, cameras, amount: float = 0.3):
     """A copy of `dataset` (stg_train.data.Dataset, its frames decoded) whose `cameras` (indices) record
-    their pictures through a lens of their own, darker by 1 - amount s (s: stg_train.lens.radial_grid),
+    their pictures through a lens of their own, darker by 1 - amount s (s: stg_train.rig.lens.radial_grid),
     as 8-bit frames: a rig whose lenses differ."""
-    from .data.dataset import Dataset
+    from ..data.dataset import Dataset
 
     frames = np.stack([[dataset.image(c, f) for f in range(dataset.num_frames)] for c in range(len(dataset.cameras))])
     for c in cameras:

@@ -1,8 +1,8 @@
 """The gauge of a camera rig: a similarity of the whole world (a small turn, shift and change of scale)
 applied to the scene and to every camera alike leaves every picture unchanged, so poses estimated from
 pictures alone are defined only up to it. `gauge_part` finds that part of small pose corrections
-(`gauge_projector`: the same as one matrix), to be removed by pose refinement (stg_train.pose_refine)
-and before pose errors are compared with a known truth (stg_train.capture.pose_errors).
+(`gauge_projector`: the same as one matrix), to be removed by pose refinement (stg_train.rig.pose_refine)
+and before pose errors are compared with a known truth (stg_train.rig.capture.pose_errors).
 
 Conventions (formats/stg-v1.md): world_to_camera (4, 4), OpenCV; a correction of camera c is the rigid
 D_c = [exp([w_c]x) | t_c] applied in camera coordinates (corrected camera D_c W_c), w_c axis-angle in
@@ -17,7 +17,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .rotations import cross_matrix, rotation_vector
+from ..rotations import cross_matrix, rotation_vector
 
 
 class Similarity(NamedTuple):
