@@ -2,11 +2,13 @@
 
 A thin command line over stg_train.convert.{compress, reference, gaussians3d, merge}. Every problem
 with an input prints `stg-convert: error: <file>: <problem>` and exits with code 2; outputs are written
-atomically, so a failed run leaves no output file behind.
+atomically, so a failed run leaves no output file behind. More subcommands come from COMMANDS, each in
+its own module.
 """
 from __future__ import annotations
 
 import argparse
+import importlib
 import os
 import sys
 import warnings
@@ -18,6 +20,13 @@ from .common import Parser, error, finite_float, nonnegative_int, positive_float
 PRESET_NAMES = ("lossless", "balanced", "small")
 
 PROG = "stg-convert"
+
+#: The subcommands that live in a module of their own, listed after the others: name -> module, whose
+#: docstring is the subcommand's description (its first line the help of `stg-convert --help`), whose
+#: add_arguments(parser) declares its arguments and whose run(args) -> exit code runs it (the errors
+#: main catches become `stg-convert: error:` lines). The module is imported when the parser is built:
+#: it imports nothing heavy at its top. docs/extending.md adds one.
+COMMANDS: dict[str, str] = {}
 
 EPILOG = """examples:
   stg-convert compress run/model.stg run/model.small.stg --preset small
@@ -189,6 +198,12 @@ def build_parser() -> argparse.ArgumentParser:
                                    "to embed the player in another page.")
     w.add_argument("input", metavar="MODEL.stg")
     w.add_argument("output", metavar="OUT", help="folder to write (created when missing)")
+
+    for name, module in COMMANDS.items():
+        command = importlib.import_module(module)
+        doc = (command.__doc__ or "").strip()
+        command.add_arguments(sub.add_parser(name, help=doc.splitlines()[0] if doc else None, description=doc or None,
+                                             formatter_class=fmt))
     return p
 
 
@@ -198,6 +213,7 @@ def main(argv=None) -> int:
     handlers = {"compress": _compress, "import-reference": _import_reference, "import-3dgs": _import_3dgs,
                 "export-ply": _export_ply, "merge": _merge,
                 "export-web": _export_web}
+    handlers.update({name: _command for name in COMMANDS})
     from stg_runtime.format import FormatError
     from stg_runtime.player import RenderError
 
@@ -210,6 +226,10 @@ def main(argv=None) -> int:
         return error(PROG, str(e))
     except OSError as e:
         return error(PROG, _file_error("", e))
+
+
+def _command(args, parser) -> int:
+    return importlib.import_module(COMMANDS[args.command]).run(args)
 
 
 def _compress(args, parser) -> int:

@@ -7,7 +7,7 @@ import sys
 import time
 from pathlib import Path
 
-from ..choices import INIT_METHODS, MOTION_INITS
+from ..choices import INIT_METHODS, MOTION_INITS, SPLATTERS
 from ..config import DEMO_SCENE, DEMO_TRAINING, TrainConfig
 from ..rig.lens import known_falloff
 from .common import (Parser, add_dataset_options, check_dataset_options, dataset_options, error, format_table,
@@ -115,7 +115,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--iterations", type=positive_int, default=None, metavar="N",
                    help=f"optimisation steps; the density-control schedule is stretched to N (default {d.iterations}, "
                         "the demo's own default with --demo)")
-    p.add_argument("--splatter", choices=["auto", "numba", "torch", "gsplat"], default="auto",
+    p.add_argument("--splatter", choices=["auto", *SPLATTERS], default="auto",
                    help="rasteriser: numba = the fast CPU splatter (numba kernels with a backward pass); torch = "
                         "the readable reference splatter in plain torch (CPU and CUDA); gsplat = the gsplat "
                         "library's CUDA kernels (pip install -e \".[cuda]\"; needs --device cuda); auto = numba "

@@ -11,61 +11,76 @@
 
 When a folder matches several layouts (the reference code's preprocessing writes colmap_<i> folders
 beside the raw N3V or Technicolor files), the raw data wins in the order above; force another with
-`layout=`.
+`layout=`. The layouts are registered in stg_train.choices.LAYOUT_SPECS (reader, detector, what it looks
+for), each reader imported when a folder of its layout is read; docs/extending.md adds one.
 """
 from __future__ import annotations
 
+import importlib
 import re
 from pathlib import Path
 from typing import Callable
 
 from stg_runtime.progress import progress_callback
 
-from ..choices import LAYOUTS
+from ..choices import LAYOUT_SPECS, LAYOUTS  # noqa: F401 (LAYOUTS re-exported by stg_train.data)
 from .bounds import uniform_bounds
 from .dataset import DataError, Dataset
-from .immersive import MODELS_FILE, load_immersive
-from .n3v import load_n3v
-from .reference import load_reference
-from .rig import load_rig
-from .technicolor import load_technicolor
+from .immersive import MODELS_FILE
 
-#: Layout name -> its reader, in detection order (raw data before the reference's preprocessing).
-READERS = dict(zip(LAYOUTS, (load_n3v, load_technicolor, load_immersive, load_reference, load_rig)))
 _CAM_VIDEO = re.compile(r"^cam\d+\.mp4$")
 _CAMERA_VIDEO = re.compile(r"^camera_\d+\.mp4$")
 _UNDIST = re.compile(r"^.+_undist_\d+_\d+\.png$")
 
 
-def _looks_like(root: Path) -> dict[str, bool]:
-    names = [p.name for p in root.iterdir()]
-    sparse = root / "sparse"
-    return {
-        "n3v": (root / "poses_bounds.npy").is_file() or any(_CAM_VIDEO.match(n) for n in names),
-        "technicolor": (root / "cameras_parameters.txt").is_file() or any(_UNDIST.match(n) for n in names),
-        "immersive": (root / MODELS_FILE).is_file() or any(_CAMERA_VIDEO.match(n) for n in names),
-        "reference": (root / "colmap_0").is_dir(),
-        "rig": sparse.is_dir() and ((root / "images").is_dir() or (root / "videos").is_dir()),
-    }
+def _named(root: Path, pattern: re.Pattern) -> bool:
+    return any(pattern.match(p.name) for p in root.iterdir())
+
+
+def looks_like_n3v(root: Path) -> bool:
+    return (root / "poses_bounds.npy").is_file() or _named(root, _CAM_VIDEO)
+
+
+def looks_like_technicolor(root: Path) -> bool:
+    return (root / "cameras_parameters.txt").is_file() or _named(root, _UNDIST)
+
+
+def looks_like_immersive(root: Path) -> bool:
+    return (root / MODELS_FILE).is_file() or _named(root, _CAMERA_VIDEO)
+
+
+def looks_like_reference(root: Path) -> bool:
+    return (root / "colmap_0").is_dir()
+
+
+def looks_like_rig(root: Path) -> bool:
+    return (root / "sparse").is_dir() and ((root / "images").is_dir() or (root / "videos").is_dir())
+
+
+def _function(spec: str) -> Callable:
+    """The function a "module:function" string of LAYOUT_SPECS names (its module imported now)."""
+    module, _, name = spec.partition(":")
+    return getattr(importlib.import_module(module), name)
+
+
+def reader(layout: str) -> Callable[..., Dataset]:
+    """The reader of a layout of LAYOUT_SPECS: reader(root, **options) -> Dataset."""
+    return _function(LAYOUT_SPECS[layout][0])
 
 
 def detect_layout(path) -> str:
     """The layout of dataset folder `path`: "n3v", "technicolor", "immersive", "reference" or "rig" (first
-    match in that order). Raises DataError listing what was looked for when nothing matches."""
+    match in that order; LAYOUT_SPECS' detectors). Raises DataError listing what was looked for when
+    nothing matches."""
     root = Path(path)
     if not root.is_dir():
         raise DataError(f"{root}: no such directory")
-    found = _looks_like(root)
-    for name in LAYOUTS:
-        if found[name]:
+    for name, (_, detector, _) in LAYOUT_SPECS.items():
+        if _function(detector)(root):
             return name
-    raise DataError(
-        f"{root}: not a dataset folder in any known layout; looked for\n"
-        "  n3v:         camXX.mp4 videos and poses_bounds.npy\n"
-        "  technicolor: <Scene>_undist_<frame>_<cam>.png images and cameras_parameters.txt\n"
-        "  immersive:   camera_NNNN.mp4 videos (or camera_NNNN/ frame folders) and models.json\n"
-        "  reference:   colmap_0/, colmap_1/, ... each with images/camXX.png and sparse/0/\n"
-        "  rig:         images/<camera>/<frame>.png (or videos/<camera>.mp4) and a COLMAP model in sparse/0/")
+    width = max(map(len, LAYOUT_SPECS)) + 2
+    raise DataError(f"{root}: not a dataset folder in any known layout; looked for\n" + "\n".join(
+        f"  {name + ':':<{width}}{looked_for}" for name, (_, _, looked_for) in LAYOUT_SPECS.items()))
 
 
 def load_dataset(path, layout: str = "auto", downscale: int = 1, *, cache_dir=None, num_frames: int | None = None,
@@ -90,8 +105,8 @@ def load_dataset(path, layout: str = "auto", downscale: int = 1, *, cache_dir=No
     root = Path(path)
     if layout == "auto":
         layout = detect_layout(root)
-    if layout not in LAYOUTS:
-        raise ValueError(f"unknown layout {layout!r}; choose one of auto, {', '.join(LAYOUTS)}")
+    if layout not in LAYOUT_SPECS:
+        raise ValueError(f"unknown layout {layout!r}; choose one of auto, {', '.join(LAYOUT_SPECS)}")
     if not root.is_dir():
         raise DataError(f"{root}: no such directory")
     if depth_range is not None:
@@ -102,13 +117,14 @@ def load_dataset(path, layout: str = "auto", downscale: int = 1, *, cache_dir=No
         options["prefer_png"] = not from_video
     elif layout in ("rig", "immersive"):
         options["from_video"] = from_video
+    read = reader(layout)
     if lazy:
-        dataset = READERS[layout](root, **options).chunked(show_progress=show_progress)
+        dataset = read(root, **options).chunked(show_progress=show_progress)
     elif progress is not None or not show_progress:
-        dataset = READERS[layout](root, progress=progress, **options)
+        dataset = read(root, progress=progress, **options)
     else:
         with progress_callback("decode frames") as report:
-            dataset = READERS[layout](root, progress=report, **options)
+            dataset = read(root, progress=report, **options)
     if depth_range is not None:
         dataset = dataset.with_bounds(uniform_bounds(dataset.num_cameras, *depth_range), "user")
     return dataset

@@ -10,18 +10,26 @@ backward pass), "torch" (stg_train.render.torch_splat, the readable reference, a
 All follow formats/stg-v1.md, section 3, and return the same RenderOutput. Cameras may be pinhole or
 fisheye (stg_runtime Camera.model): torch and numba draw both; gsplat draws pinholes and equidistant
 fisheyes and hands a fisheye with k1..k4 to the torch splatter (gsplat_backend's docstring says why;
-docs/training.md, "Camera models").
+docs/training.md, "Camera models"). The backends are registered in stg_train.choices.SPLATTERS
+(name -> "module:function"), each module imported when its backend first draws; docs/extending.md adds one.
 """
 from __future__ import annotations
 
+import importlib
+
 from torch import Tensor
 
+from ..choices import SPLATTERS
 from .output import RenderOutput
-from .torch_splat import rasterize_torch
-
-BACKENDS = ("numba", "torch", "gsplat")
 
 __all__ = ["BACKENDS", "RenderOutput", "rasterize", "resolve_backend"]
+
+
+def __getattr__(name: str):
+    """BACKENDS: the backends' names, as stg_train.choices.SPLATTERS holds them now."""
+    if name == "BACKENDS":
+        return tuple(SPLATTERS)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, features: Tensor, camera,
@@ -30,32 +38,30 @@ def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, f
     opacities (M,) or (M, 1), features (M, C); one device and float dtype) seen by `camera` (a
     stg_runtime Camera, pinhole or fisheye), differentiably. options: the torch backend's speed and memory settings
     (rasterize_torch's tile_size, chunk, max_elements, checkpoint); the result never depends on them.
-    The numba backend takes CPU tensors only."""
+    The numba backend takes CPU tensors only; the backends other than torch take no options."""
+    if backend not in SPLATTERS:
+        raise ValueError(f"backend must be one of {tuple(SPLATTERS)}, got {backend!r}")
+    module, _, function = SPLATTERS[backend].partition(":")
+    draw = getattr(importlib.import_module(module), function)
     if backend == "torch":
-        return rasterize_torch(means, quats, scales, opacities, features, camera, **options)
-    if backend == "numba":
-        from .numba_splat import rasterize_numba
-
-        return rasterize_numba(means, quats, scales, opacities, features, camera)
-    if backend == "gsplat":
-        from .gsplat_backend import rasterize_gsplat
-
-        return rasterize_gsplat(means, quats, scales, opacities, features, camera)
-    raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+        return draw(means, quats, scales, opacities, features, camera, **options)
+    return draw(means, quats, scales, opacities, features, camera)
 
 
 def resolve_backend(name: str, device: str) -> str:
     """The backend to train with on `device` ("cpu" or "cuda"): "auto" picks numba on the CPU and gsplat
     on CUDA when it can run (installed, device present), else torch. Raises ValueError with the reason
-    when a backend asked for explicitly cannot run there."""
-    if name not in ("auto",) + BACKENDS:
-        raise ValueError(f"splatter must be auto, {', '.join(BACKENDS)}, got {name!r}")
+    when a backend asked for explicitly cannot run there. Other backends of SPLATTERS are taken as named."""
+    if name not in ("auto",) + tuple(SPLATTERS):
+        raise ValueError(f"splatter must be auto, {', '.join(SPLATTERS)}, got {name!r}")
     if name == "torch":
         return "torch"
     if device == "cpu" and name in ("auto", "numba"):
         return "numba"
     if name == "numba":
         raise ValueError(f"--splatter numba runs on the CPU, not on {device}; use --splatter gsplat, torch or auto")
+    if name not in ("auto", "gsplat"):
+        return name
     from .gsplat_backend import unavailable_reason
 
     reason = unavailable_reason(device)
