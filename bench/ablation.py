@@ -15,7 +15,7 @@ Variants (TrainConfig settings): full; no-temporal-opacity (frozen temporal_opac
 no-motion (frozen motion = 0); no-rotation (frozen omega = 0); no-feature-splatting (the lite model:
 splatted base rgb, no view / time features, no decoder); no-guided (guided=False). --set changes a
 TrainConfig field for every variant (VALUE is JSON, else a string: --set splatter=numba,
---set 'schedule={"densify_until": 600}'), which makes this the screening tool of docs/dynamic.md.
+--set 'schedule={"densify_until": 600}'), which makes this the screening tool of docs/notes/dynamic.md.
 Defaults are the demo's (stg_train.pipeline DEMO_SCENE / DEMO_TRAINING: 12 cameras x 30 frames at
 160x120, 1500 iterations, 8000 initial points), about 15-20 min per variant on 2 idle CPU cores;
 `--iterations 500 --points 4000` took 11-16 min per variant on 2 cores shared with other jobs. Held-out
