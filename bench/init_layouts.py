@@ -1,6 +1,6 @@
 #!/usr/bin/env python
 """One synthetic room in two layouts, trained from each initialisation: held-out and novel-view PSNR,
-Gaussian count and file size (docs/training.md, "Custom captures").
+Gaussian count and file size (docs/notes/initial-points.md, "Custom captures").
 
     python bench/init_layouts.py --variants n3v-volume,rig-sfm,rig-combined,rig-volume [--iterations 500]
                                  [--data DIR] [--out DIR] [--splatter torch] [--init-every N]

@@ -64,7 +64,7 @@ class TrainConfig:
     draws every frame alike, 1); camera_gains: {camera name: (r, g, b)} the training cameras' colour
     gains relative to the rig's, as the rig's measurement before training found them where it decided
     on an appearance (stg_train.rig.self_calibration.calibrate_rig; None: not measured): the initial points
-    are drawn from the pictures divided by them (Trainer.initial_brightness), and a long video's
+    are drawn from the pictures divided by them (CameraRig.initial_brightness), and a long video's
     segments, which are given the measurement's choices, share them.
     docs/training.md says which defaults are the reference's and which are ours, with the measurements behind them.
     """

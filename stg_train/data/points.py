@@ -80,7 +80,7 @@ class InitialPoints:
 
 def default_method(dataset) -> str:
     """--init auto: "volume" for every dataset; a layout without near/far bounds gets them from the SfM
-    points (docs/training.md compares the initialisations on one scene in two layouts)."""
+    points (docs/notes/initial-points.md compares the initialisations on one scene in two layouts)."""
     return "volume"
 
 

@@ -8,7 +8,7 @@
     gauge             the similarity of the world that pictures cannot reveal, removed from the corrections
     self_calibration  the rig measured from its own pictures before training; "auto" decided from it
     remeasure         the rig measured again through the model's geometry, a third of the way through
-    pose_align        a scored view's pose aligned to its own pictures (evaluation: stg-eval --align)
+    pose_align        a scored view's pose aligned to its own pictures (evaluation: stg-eval --align-poses)
     capture           the synthetic capture model (exposure, white balance, vignetting, noise, pose error)
                       and pose errors against a capture's truth
 

@@ -166,7 +166,7 @@ class CameraRig:
     def hold_appearance(self, gains: np.ndarray) -> None:
         """Set each training camera's colour transform to its measured gains (CameraAppearance.set_gains;
         gains (C, 3) in train_cameras order) and hold it for the rest of the run: what Adam learns of
-        them stays about 1 % off the truth, where these are within 0.1 % (docs/training.md)."""
+        them stays about 1 % off the truth, where these are within 0.1 % (docs/notes/real-captures-method.md)."""
         self.appearance.set_gains(gains)
         for group in self.optimizer.param_groups:
             if group["name"] in ("appearance_matrix", "appearance_bias"):

@@ -32,8 +32,8 @@ from .gauge import gauge_projector
 #: Adam learning rates of the pose corrections (per step; decayed with the run, see Trainer): rotation in
 #: radians, translation in units of the scene's depth (PoseCorrections' `scale`: data.bounds.typical_depth,
 #: else params.extent_of), so that both move the pictures alike. gsplat's pose_opt_lr; at 1e-4 the
-#: corrections drifted with the scene and cost a novel view 2.4 dB on a clean capture (docs/training.md,
-#: "Real captures").
+#: corrections drifted with the scene and cost a novel view 2.4 dB on a clean capture (docs/notes/real-captures.md,
+#: "Measured").
 POSE_LR = {"rotation": 1e-5, "translation": 1e-5}
 
 

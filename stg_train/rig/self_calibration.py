@@ -18,7 +18,7 @@ measures:
    That is linear in (g, a1, a2): iteratively reweighted least squares (Cauchy weights) with the gains'
    sum held at 0 (only gains relative to the rig's mean can be told from its pictures).
 3. The pictures are corrected by the estimate and the flow is computed again (`rounds` times): the
-   flow of pictures that still vignette pulls the estimate towards no falloff (docs/training.md).
+   flow of pictures that still vignette pulls the estimate towards no falloff (docs/notes/real-captures-method.md).
 
 The log-polynomial is then written as the trainer's `1 + k1 s + k2 s^2` (a least-squares fit over
 s in [0, 1]). Pinhole and fisheye cameras alike (s is measured in pixels from the principal point).

@@ -26,7 +26,7 @@ class StepContext(NamedTuple):
     screen-space gradients after backward); render(camera_index, tau) -> (rgb (H, W, 3), RenderOutput)
     of the current parameters (call it under torch.no_grad()); ground_truth(camera_index, frame) ->
     (H, W, 3) float on the device: the camera's picture as the canonical scene would look (what render
-    gives at a perfect fit: the camera's lens falloff and appearance undone, Trainer.canonical_truth;
+    gives at a perfect fit: the camera's lens falloff and appearance undone, CameraRig.canonical;
     the picture itself, in [0, 1], where the cameras are not modelled).
     """
 
