@@ -41,6 +41,41 @@ def test_readme_stays_short_and_links_resolve():
     assert linked == {p.name for p in (ROOT / "docs").glob("*.md")}  # every page is reachable from the README
 
 
+def _paragraphs(text: str) -> list[list[str]]:
+    """The prose paragraphs of a markdown page: runs of non-blank lines outside code fences, each list
+    item its own paragraph, tables and headings left out."""
+    paragraphs, current, fenced = [], [], False
+    for line in text.splitlines() + [""]:
+        if line.startswith("```"):
+            fenced = not fenced
+            line = ""
+        starts_item = re.match(r"\s*([-*]|\d+\.) ", line)
+        if fenced or not line.strip() or line.startswith(("#", "|")) or starts_item:
+            if current:
+                paragraphs.append(current)
+            current = [line] if starts_item and not fenced else []
+            continue
+        current.append(line)
+    return paragraphs
+
+
+def test_readme_paragraphs_stay_short():
+    long = [p[0][:60] for p in _paragraphs((ROOT / "README.md").read_text()) if len(p) > 8]
+    assert long == []
+
+
+def test_paragraphs_are_split_as_markdown_shows_them():
+    text = "one\ntwo\n\n- item\n  more\n- next\n\n```bash\na\nb\n```\n| t |\nlast\n"
+    assert _paragraphs(text) == [["one", "two"], ["- item", "  more"], ["- next"], ["last"]]
+
+
+def test_docs_pages_stay_reference_sized():
+    """No docs page, notes included, over 400 lines (the format spec is the one long page)."""
+    pages = [*(ROOT / "docs").glob("*.md"), *(ROOT / "docs" / "notes").glob("*.md")]
+    long = {str(p.relative_to(ROOT)): n for p in pages if (n := len(p.read_text().splitlines())) > 400}
+    assert long == {}
+
+
 # -- the snippets run as written -------------------------------------------------------------------
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 #: Python snippets that do not run here, and why (page, index of the ```python block on the page).
