@@ -150,6 +150,7 @@ def test_documented_command_lines_parse():
     import importlib
 
     modules = {"stg-train": "stg_train.cli.train", "stg-eval": "stg_train.cli.eval", "stg-synth": "stg_train.cli.synth",
+               "stg-prep": "stg_train.cli.prep",
                "stg-convert": "stg_train.cli.convert", "stg-render": "stg_runtime.cli", "stg-view": "stg_runtime.viewer.cli"}
     bad, count = [], 0
     for page, words in _command_lines():
