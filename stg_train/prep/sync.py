@@ -82,9 +82,10 @@ def correlation(a: np.ndarray, b: np.ndarray, lag: int) -> float:
 
 def pair_lag(a: np.ndarray, b: np.ndarray, max_lag: int) -> tuple[int, float]:
     """(lag, confidence): b's frame t shows what a's frame t + lag shows, for the lag in
-    [-max_lag, max_lag] of the highest correlation; confidence as in the module docstring."""
+    [-max_lag, max_lag] of the highest correlation (the smallest lag of equal ones: 0 where nothing
+    varies); confidence as in the module docstring."""
     a, b = _standardised(a), _standardised(b)
-    lags = np.arange(-max_lag, max_lag + 1)
+    lags = np.array(sorted(range(-max_lag, max_lag + 1), key=lambda d: (abs(d), d)))
     scores = np.array([correlation(a, b, int(d)) for d in lags])
     best = int(np.argmax(scores))
     others = scores[np.abs(lags - lags[best]) >= 2]
