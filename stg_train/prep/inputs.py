@@ -155,3 +155,21 @@ def source_signature(clips: list[Clip]) -> str:
             st = p.stat()
             h.update(f"{clip.name}\0{p.resolve()}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
     return h.hexdigest()[:32]
+
+
+def is_raw_videos(folder) -> bool:
+    """Whether `folder` is stg-prep's input rather than a dataset: a video file or a folder of frames
+    directly in it, and no layout's cameras (stg_train.data.layouts.has_calibration)."""
+    from ..data.layouts import has_calibration
+
+    root = Path(folder)
+    if not root.is_dir() or has_calibration(root):
+        return False
+    for entry in root.iterdir():
+        if entry.name.startswith("."):
+            continue
+        if entry.is_file() and entry.suffix.lower() in VIDEO_EXTENSIONS:
+            return True
+        if entry.is_dir() and any(p.suffix.lower() in IMAGE_EXTENSIONS for p in entry.iterdir()):
+            return True
+    return False

@@ -4,6 +4,7 @@ picture), synchronise (sync), calibrate (calibrate), write. Everything is writte
 sibling of OUT, renamed to OUT at the end: a failed run leaves OUT as it was."""
 from __future__ import annotations
 
+import inspect
 import os
 import shutil
 import tempfile
@@ -196,23 +197,27 @@ def _replace(tmp: Path, out: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
-def prepared(videos, out, **options) -> tuple[Path, bool]:
-    """(out, reused): `out` prepared from `videos` with `options` (prepare's), or reused as it is when
-    its prep.json says it was made from the same files with the same options."""
-    wanted = _options_record(options)
+def prepared(videos, out, announce: Callable[[], None] | None = None, **options) -> tuple[dict, bool]:
+    """(report, reused): `out` prepared from `videos` with `options` (prepare's keywords), or reused as it
+    is when its prep.json says it was made from the same files with the same options. announce() is
+    called before a preparation starts (not when the folder is reused)."""
     report = read_report(out)
-    if report is not None and report.get("format") == FORMAT and report.get("options") == wanted:
-        clips = find_clips(videos)
-        if report.get("inputs") == source_signature(clips):
-            return Path(out), True
-    prepare(videos, out, force=True, **options)
-    return Path(out), False
+    if report is not None and report.get("format") == FORMAT and report.get("options") == _options_record(options):
+        if report.get("inputs") == source_signature(find_clips(videos)):
+            return report, True
+    if announce is not None:
+        announce()
+    return prepare(videos, out, force=True, **options), False
+
+
+#: prepare's keywords that decide what it writes (prep.json records them under "options").
+RECORDED = ("offsets", "camera_model", "fps", "max_offset", "min_frames")
 
 
 def _options_record(options: dict) -> dict:
-    """The options that decide what prepare writes, as JSON."""
-    keep = ("offsets", "camera_model", "fps", "max_offset", "min_frames")
-    record = {k: options.get(k) for k in keep}
+    """The RECORDED options, prepare's defaults where `options` has none, as JSON."""
+    defaults = inspect.signature(prepare).parameters
+    record = {k: options.get(k, defaults[k].default) for k in RECORDED}
     if isinstance(record["offsets"], Sequence) and not isinstance(record["offsets"], str):
         record["offsets"] = list(record["offsets"])
     return record
