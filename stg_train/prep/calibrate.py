@@ -6,7 +6,9 @@ poses must be fitted to, dominate; all of a camera's frames share its intrinsics
 through SIFT (CPU), exhaustive matching and incremental mapping, with observations kept only within
 MAX_ERROR pixels. Intrinsics: `pinhole` is COLMAP's SIMPLE_PINHOLE (one focal length, the principal
 point at the image centre, as the mapper leaves it), `opencv` adds k1, k2, p1, p2 (the frames are then
-undistorted, stg_train.prep.write), `fisheye` is OPENCV_FISHEYE (k1..k4; the frames stay as they are).
+undistorted, stg_train.prep.write), `fisheye` is OPENCV_FISHEYE (k1..k4; the frames stay as they are),
+starting from an equidistant lens 180 degrees across (COLMAP's first guess for every model, a lens
+about 45 degrees across, verifies no fisheye match).
 Pinhole is the default; where it fits badly (a camera left out, or a mean reprojection error above
 FALLBACK_ERROR pixels) opencv is tried and the better of the two kept, the report says so.
 
@@ -96,13 +98,17 @@ def _unregistered_error(missing: list[str], counts: dict[str, dict[str, int]]) -
                      + " (cameras need overlapping views of textured static surfaces)")
 
 
-def _run_colmap(pycolmap, work: Path, names: list[str], colmap_model: str, threads: int):
-    """Features, matches and mapping of work/images/<name>.png -> (the largest model or None, match counts)."""
+def _run_colmap(pycolmap, work: Path, names: list[str], colmap_model: str, threads: int, size: tuple[int, int]):
+    """Features, matches and mapping of work/images/<name>.png (size: their (width, height)) -> (the
+    largest model or None, match counts)."""
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = threads
     extraction.sift.max_num_features = 8192
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = colmap_model
+    if colmap_model == CAMERA_MODELS["fisheye"]:  # COLMAP's first guess, a narrow lens, verifies no match
+        w, h = size
+        reader.camera_params = f"{w / np.pi},{w / np.pi},{w / 2},{h / 2},0,0,0,0"
     database = work / f"{colmap_model}.db"
     pycolmap.extract_features(database, work / "images", image_names=[f"{n}.png" for n in names],
                               camera_mode=pycolmap.CameraMode.PER_IMAGE, reader_options=reader,
@@ -190,8 +196,8 @@ def _calibration(rec, names: list[str], model: str) -> Calibration:
                        {n: per_camera[n] for n in names}, distortion)
 
 
-def _fit(pycolmap, work: Path, names: list[str], model: str, threads: int) -> Calibration:
-    rec, counts = _run_colmap(pycolmap, work, names, CAMERA_MODELS[model], threads)
+def _fit(pycolmap, work: Path, names: list[str], model: str, threads: int, size) -> Calibration:
+    rec, counts = _run_colmap(pycolmap, work, names, CAMERA_MODELS[model], threads, size)
     registered = set() if rec is None else {Path(im.name).stem for im in rec.images.values() if im.has_pose}
     missing = [n for n in names if n not in registered]
     if missing:
@@ -212,27 +218,28 @@ def calibrate(pictures: dict[str, np.ndarray], work_dir, camera_model: str = "pi
     work = Path(work_dir)
     (work / "images").mkdir(parents=True, exist_ok=True)
     names = list(pictures)
+    size = next(iter(pictures.values())).shape[1::-1]
     for name, rgb in pictures.items():
         if not cv2.imwrite(str(work / "images" / f"{name}.png"), np.ascontiguousarray(rgb[..., ::-1])):
             raise PrepError(f"{work / 'images' / name}.png: cannot write the calibration picture")
     with _quiet(pycolmap):
         try:
-            result = _fit(pycolmap, work, names, camera_model, threads)
+            result = _fit(pycolmap, work, names, camera_model, threads, size)
         except PrepError as e:
             if camera_model != "pinhole":
                 raise
-            return _fall_back(pycolmap, work, names, threads, str(e), e)
+            return _fall_back(pycolmap, work, names, threads, size, str(e), e)
         if camera_model == "pinhole" and result.reprojection_error > FALLBACK_ERROR:
             reason = f"mean reprojection error {result.reprojection_error:.2f} px above {FALLBACK_ERROR} px"
-            return _fall_back(pycolmap, work, names, threads, reason, result)
+            return _fall_back(pycolmap, work, names, threads, size, reason, result)
     return result
 
 
-def _fall_back(pycolmap, work: Path, names: list[str], threads: int, reason: str, pinhole):
+def _fall_back(pycolmap, work: Path, names: list[str], threads: int, size, reason: str, pinhole):
     """The opencv fit where the pinhole one failed (pinhole a PrepError) or fit badly (a Calibration):
     the opencv one when it registers every camera with a lower error, else the pinhole outcome."""
     try:
-        opencv = _fit(pycolmap, work, names, "opencv", threads)
+        opencv = _fit(pycolmap, work, names, "opencv", threads, size)
     except PrepError:
         if isinstance(pinhole, PrepError):
             raise pinhole from None

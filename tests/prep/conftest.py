@@ -29,3 +29,18 @@ def sync_scene(tmp_path_factory):
 def calibration_scene(tmp_path_factory):
     """(N3V folder, true cameras) of CALIBRATION_SCENE."""
     return _write(tmp_path_factory, "prep_calibration", CALIBRATION_SCENE)
+
+
+#: The fisheye test's dome (stg-synth --fisheye 120): 12 equidistant fisheye cameras, 320x240, 2 frames.
+FISHEYE_SCENE = dict(num_cameras=12, num_frames=2, fps=30.0, width=320, height=240, hfov_deg=120.0)
+
+
+@pytest.fixture(scope="session")
+def fisheye_scene(tmp_path_factory):
+    """(Immersive folder, true cameras) of FISHEYE_SCENE."""
+    from stg_train.synthetic import write_immersive
+
+    path = tmp_path_factory.mktemp("prep_fisheye")
+    scene = FISHEYE_SCENE
+    cameras = write_immersive(path, SyntheticScene(seed=0, duration=scene["num_frames"] / scene["fps"]), **scene)
+    return path, cameras

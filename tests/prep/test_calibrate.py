@@ -3,6 +3,7 @@ registered; after one similarity to the truth, rotations within 0.1 degrees and 
 of the rig's size), and the written model is what stg_train.data.load_dataset reads; a camera that does
 not register is an error naming it with its match counts, OUT untouched."""
 import re
+import shutil
 
 import cv2
 import numpy as np
@@ -61,3 +62,21 @@ def test_a_camera_that_does_not_register_is_named(sync_scene, tmp_path, capsys):
 def test_the_camera_model_must_be_known(sync_scene, tmp_path):
     with pytest.raises(ValueError, match="camera_model"):
         prepare(sync_scene[0], tmp_path / "out", camera_model="orthographic")
+
+
+def test_a_fisheye_dome_registers_every_camera(fisheye_scene, tmp_path, capsys):
+    folder, truth = fisheye_scene
+    raw = tmp_path / "videos"
+    raw.mkdir()
+    for cam in truth:  # the frame folders, without models.json
+        shutil.copytree(folder / cam.name, raw / cam.name)
+    assert main([str(raw), str(tmp_path / "out"), "--camera-model", "fisheye", "--min-frames", "2"]) == 0
+    assert "calibration: fisheye, 12 of 12 cameras registered" in capsys.readouterr().err
+    dataset = load_dataset(tmp_path / "out")
+    assert [c.name for c in dataset.cameras] == [c.name for c in truth]
+    assert all(c.model == "fisheye" and len(c.distortion) == 4 for c in dataset.cameras)
+    rotation_deg, position = aligned_pose_errors(np.stack([c.world_to_camera for c in dataset.cameras]),
+                                                 np.stack([c.world_to_camera for c in truth]))
+    centres = _centres(truth)
+    size = max(np.linalg.norm(a - b) for a in centres for b in centres)
+    assert rotation_deg.max() < 0.5 and 100 * position.max() / size < 3, (rotation_deg, 100 * position / size)
