@@ -14,6 +14,7 @@ from stg_train.data import load_dataset
 from stg_train.prep import prepare
 from stg_train.rig.gauge import aligned_pose_errors
 
+from .distort import distort
 from .raw import raw_folder
 
 
@@ -80,3 +81,29 @@ def test_a_fisheye_dome_registers_every_camera(fisheye_scene, tmp_path, capsys):
     centres = _centres(truth)
     size = max(np.linalg.norm(a - b) for a in centres for b in centres)
     assert rotation_deg.max() < 0.5 and 100 * position.max() / size < 3, (rotation_deg, 100 * position / size)
+
+
+def _psnr(a: np.ndarray, b: np.ndarray) -> float:
+    return float(10 * np.log10(255.0 ** 2 / np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)))
+
+
+def test_distorted_lenses_are_undistorted_into_the_frames(calibration_scene, tmp_path):
+    n3v, truth = calibration_scene
+    coefficients = (-0.12, 0.03, 0.0005, -0.0005)  # barrel: about 25 px at the corners of 800x600
+    raw = tmp_path / "videos"
+    for cam in truth:
+        (raw / cam.name).mkdir(parents=True)
+        ideal = cv2.imread(str(n3v / "frames" / cam.name / "000000.png"))
+        cv2.imwrite(str(raw / cam.name / "0.png"), distort(ideal, cam, coefficients))
+    report = prepare(raw, tmp_path / "out", camera_model="opencv", offsets=[0] * 12, min_frames=1)
+    assert (report["calibration"]["registered"], report["calibration"]["camera_model"]) == (12, "opencv")
+    inner = (slice(60, -60), slice(80, -80))  # away from the borders, which undistortion stretches
+    for cam in truth:
+        ideal = cv2.imread(str(n3v / "frames" / cam.name / "000000.png"))[inner]
+        recorded = cv2.imread(str(raw / cam.name / "0.png"))[inner]
+        written = cv2.imread(str(tmp_path / "out" / "images" / cam.name / "00000.png"))[inner]
+        assert _psnr(written, ideal) > _psnr(recorded, ideal) + 8, cam.name
+    dataset = load_dataset(tmp_path / "out")  # written as undistorted pinholes
+    assert all(c.model == "pinhole" and c.distortion == () for c in dataset.cameras)
+    k1 = [c["distortion"][0] for c in report["cameras"]]
+    assert all(-0.15 < k < -0.08 for k in k1), k1
