@@ -42,9 +42,10 @@ class Clip:
     fps: float | None
     images: tuple[Path, ...] | None = None
 
-    def read(self, start: int = 0, count: int | None = None) -> Iterator[np.ndarray]:
+    def read(self, start: int = 0, count: int | None = None, strict: bool = True) -> Iterator[np.ndarray]:
         """Frames start .. start + count - 1 (default: to the end) as (H, W, 3) uint8 RGB; PrepError naming
-        the file when one cannot be decoded or has another size."""
+        the file when one cannot be decoded or has another size, or, when `strict`, when a video ends
+        before them (else the frames stop there: a container may state more frames than it holds)."""
         count = self.count - start if count is None else count
         try:
             if self.images is None:
@@ -60,7 +61,8 @@ class Clip:
         except PrepError:
             raise
         except DataError as e:
-            raise PrepError(str(e)) from None
+            if strict or self.images is not None:
+                raise PrepError(str(e)) from None
 
 
 def _number_key(path: Path) -> tuple:

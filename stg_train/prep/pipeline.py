@@ -9,6 +9,7 @@ import os
 import shutil
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable, Mapping, Sequence
 
@@ -54,24 +55,30 @@ def resolve_offsets(given, clips: list[Clip]) -> list[int]:
     return values
 
 
-def _read(clips: list[Clip], signals: bool, progress) -> tuple[list[np.ndarray], dict[str, np.ndarray]]:
-    """One pass over every clip: its signal (when `signals`) and its static picture."""
+def _read(clips: list[Clip], signals: bool, progress) -> tuple[list[Clip], list[np.ndarray], dict, list[str]]:
+    """One pass over every clip: (the clips, with the frame counts their videos decode; their signals
+    (when `signals`); their static pictures; notes on videos that hold fewer frames than they state)."""
     total, done = sum(c.count for c in clips), 0
-    out_signals, pictures = [], {}
+    out_clips, out_signals, pictures, notes = [], [], {}, []
     for clip in clips:
         keep = set(np.linspace(0, clip.count - 1, min(STATIC_FRAMES, clip.count)).round().astype(int).tolist())
-        meter, kept = SignalMeter(), []
-        last = clip.count - 1 if signals else max(keep)
-        for k, rgb in enumerate(clip.read(0, last + 1)):
+        meter, kept, decoded = SignalMeter(), [], 0
+        for k, rgb in enumerate(clip.read(strict=False)):
             if signals:
                 meter.add(rgb)
             if k in keep:
                 kept.append(rgb)
-            done += 1
+            decoded, done = k + 1, done + 1
             progress(done, total)
+        if decoded < clip.count:
+            notes.append(f"{clip.path}: states {clip.count} frames, {decoded} decode; using {decoded}")
+            clip = replace(clip, count=decoded)
+        if not kept:
+            raise PrepError(f"{clip.path}: no frame decodes")
+        out_clips.append(clip)
         out_signals.append(meter.signal())
         pictures[clip.name] = static_picture(kept)
-    return out_signals, pictures
+    return out_clips, out_signals, pictures, notes
 
 
 def _common_span(clips: list[Clip], offsets: list[int], min_frames: int) -> tuple[int, list[str]]:
@@ -129,7 +136,7 @@ def prepare(videos, out, *, offsets=None, camera_model: str = "pinhole", fps: fl
 def _prepare_into(tmp: Path, videos: Path, clips: list[Clip], fps: float, given, camera_model: str,
                   max_offset, min_frames: int, threads: int, stage, seconds: dict, record: dict) -> dict:
     t = time.perf_counter()
-    signals, pictures = _read(clips, given is None, stage("stg-prep read"))
+    clips, signals, pictures, warnings = _read(clips, given is None, stage("stg-prep read"))
     seconds["read"], t = time.perf_counter() - t, time.perf_counter()
     if given is None:
         shortest = min(c.count for c in clips)
@@ -139,7 +146,7 @@ def _prepare_into(tmp: Path, videos: Path, clips: list[Clip], fps: float, given,
         limit, found = None, [Offset(v, None) for v in given]
     offsets = [o.frames for o in found]
     span, trimmed = _common_span(clips, offsets, min_frames)
-    warnings = [f"{c.name}: offset {o.frames} found with a low confidence {o.confidence:.2f} (below "
+    warnings += [f"{c.name}: offset {o.frames} found with a low confidence {o.confidence:.2f} (below "
                 f"{LOW_CONFIDENCE}); check it, or give the offsets with --offsets"
                 for c, o in zip(clips, found) if o.confidence is not None and o.confidence < LOW_CONFIDENCE]
     seconds["sync"], t = time.perf_counter() - t, time.perf_counter()

@@ -88,3 +88,23 @@ def test_a_periodic_signal_has_no_confidence():
     wave = np.stack([np.sin(2 * np.pi * t / 4), np.cos(2 * np.pi * t / 4)], axis=1)
     (o0, c0), (o1, c1) = estimate_offsets([wave, np.roll(wave, 1, axis=0)], 10)
     assert c0 < LOW_CONFIDENCE and c1 < LOW_CONFIDENCE
+
+
+def test_a_video_that_holds_fewer_frames_than_it_states(sync_scene, tmp_path):
+    """A truncated AVI states 40 frames in its header and decodes fewer: the frames it has are used, and
+    the report says so."""
+    n3v, _ = sync_scene
+    raw = raw_folder(n3v, tmp_path / "videos", (0, 0, 0, 0), "png")
+    writer = cv2.VideoWriter(str(raw / "cam03.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (160, 120))
+    for k in range(40):
+        writer.write(cv2.imread(str(raw / "cam03" / f"{k}.png")))
+    writer.release()
+    shutil.rmtree(raw / "cam03")
+    data = (raw / "cam03.avi").read_bytes()
+    (raw / "cam03.avi").write_bytes(data[:int(len(data) * 0.85)])
+    report = prepare(raw, tmp_path / "out", offsets=[0, 0, 0, 0])
+    decoded = report["frames"]
+    assert 8 <= decoded < 40
+    assert report["cameras"][3]["frames"] == decoded
+    assert any(f"cam03.avi: states 40 frames, {decoded} decode" in w for w in report["warnings"]), report["warnings"]
+    assert len(list((tmp_path / "out" / "images" / "cam00").iterdir())) == decoded
