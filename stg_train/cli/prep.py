@@ -93,7 +93,10 @@ def summary(report: dict, out, seconds: float) -> str:
              f" {offsets}",
              f"  calibration: {cal['camera_model']}, {cal['registered']} of {cal['cameras']} cameras registered, "
              f"mean reprojection error {cal['mean_reprojection_error_px']:.3f} px, {cal['points']} points"]
-    lines += [f"  trimmed to the common span: {t}" for t in report["trimmed"]]
+    kept = [f"{c['name']} {c['frames_used'][0]}-{c['frames_used'][1]} of {c['frames']}" for c in report["cameras"]
+            if c["frames"] != report["frames"]]
+    if kept:
+        lines.append(f"  trimmed to the {report['frames']} frames all cameras share: {', '.join(kept)}")
     return "\n".join(lines)
 
 

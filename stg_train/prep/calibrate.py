@@ -21,7 +21,7 @@ from __future__ import annotations
 import contextlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -98,9 +98,12 @@ def _unregistered_error(missing: list[str], counts: dict[str, dict[str, int]]) -
                      + " (cameras need overlapping views of textured static surfaces)")
 
 
-def _run_colmap(pycolmap, work: Path, names: list[str], colmap_model: str, threads: int, size: tuple[int, int]):
+def _run_colmap(pycolmap, work: Path, names: list[str], colmap_model: str, threads: int, size: tuple[int, int],
+                progress: Callable[[int, int], None]):
     """Features, matches and mapping of work/images/<name>.png (size: their (width, height)) -> (the
-    largest model or None, match counts)."""
+    largest model or None, match counts). progress(done, total): the features, the matches, then each
+    image the mapper registers (total 2 + images; a mapper that starts a second model counts on)."""
+    total = 2 + len(names)
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = threads
     extraction.sift.max_num_features = 8192
@@ -113,9 +116,11 @@ def _run_colmap(pycolmap, work: Path, names: list[str], colmap_model: str, threa
     pycolmap.extract_features(database, work / "images", image_names=[f"{n}.png" for n in names],
                               camera_mode=pycolmap.CameraMode.PER_IMAGE, reader_options=reader,
                               extraction_options=extraction, device=pycolmap.Device.cpu)
+    progress(1, total)
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = threads
     pycolmap.match_exhaustive(database, matching_options=matching, device=pycolmap.Device.cpu)
+    progress(2, total)
     db = pycolmap.Database.open(str(database))
     try:
         ids = {im.image_id: Path(im.name).stem for im in db.read_all_images()}
@@ -130,7 +135,17 @@ def _run_colmap(pycolmap, work: Path, names: list[str], colmap_model: str, threa
     options.triangulation.merge_max_reproj_error = MAX_ERROR
     out = work / f"{colmap_model}_sparse"
     out.mkdir(exist_ok=True)
-    models = pycolmap.incremental_mapping(database, work / "images", out, options=options)
+    registered = [2]
+
+    def registered_one() -> None:
+        registered[0] += 1
+        progress(min(registered[0], total), total)
+
+    models = pycolmap.incremental_mapping(database, work / "images", out, options=options,
+                                          initial_image_pair_callback=lambda: (registered_one(), registered_one()),
+                                          next_image_callback=registered_one)
+    if registered[0] < total:
+        progress(total, total)
     best = max(models.values(), key=lambda m: (m.num_reg_images(), m.num_points3D()), default=None)
     return best, counts
 
@@ -196,8 +211,9 @@ def _calibration(rec, names: list[str], model: str) -> Calibration:
                        {n: per_camera[n] for n in names}, distortion)
 
 
-def _fit(pycolmap, work: Path, names: list[str], model: str, threads: int, size) -> Calibration:
-    rec, counts = _run_colmap(pycolmap, work, names, CAMERA_MODELS[model], threads, size)
+def _fit(pycolmap, work: Path, names: list[str], model: str, threads: int, size, stage) -> Calibration:
+    rec, counts = _run_colmap(pycolmap, work, names, CAMERA_MODELS[model], threads, size,
+                              stage(f"stg-prep calibrate ({model})"))
     registered = set() if rec is None else {Path(im.name).stem for im in rec.images.values() if im.has_pose}
     missing = [n for n in names if n not in registered]
     if missing:
@@ -205,11 +221,13 @@ def _fit(pycolmap, work: Path, names: list[str], model: str, threads: int, size)
     return _calibration(rec, names, model)
 
 
-def calibrate(pictures: dict[str, np.ndarray], work_dir, camera_model: str = "pinhole",
-              threads: int = -1) -> Calibration:
+def calibrate(pictures: dict[str, np.ndarray], work_dir, camera_model: str = "pinhole", threads: int = -1,
+              progress: Callable[[str], Callable[[int, int], None]] | None = None) -> Calibration:
     """Calibrate the rig from one static picture per camera (name -> (H, W, 3) uint8 RGB), in a scratch
-    folder work_dir; camera_model one of CAMERA_MODELS (module docstring). PrepError naming the cameras
-    that do not register, with their verified match counts."""
+    folder work_dir; camera_model one of CAMERA_MODELS (module docstring). progress(stage) -> report(done,
+    total): a callback per model fitted (stg_runtime.progress.progress_stages). PrepError naming the
+    cameras that do not register, with their verified match counts."""
+    stage = progress or (lambda name: lambda done, total: None)
     import cv2
     import pycolmap
 
@@ -224,22 +242,22 @@ def calibrate(pictures: dict[str, np.ndarray], work_dir, camera_model: str = "pi
             raise PrepError(f"{work / 'images' / name}.png: cannot write the calibration picture")
     with _quiet(pycolmap):
         try:
-            result = _fit(pycolmap, work, names, camera_model, threads, size)
+            result = _fit(pycolmap, work, names, camera_model, threads, size, stage)
         except PrepError as e:
             if camera_model != "pinhole":
                 raise
-            return _fall_back(pycolmap, work, names, threads, size, str(e), e)
+            return _fall_back(pycolmap, work, names, threads, size, stage, str(e), e)
         if camera_model == "pinhole" and result.reprojection_error > FALLBACK_ERROR:
             reason = f"mean reprojection error {result.reprojection_error:.2f} px above {FALLBACK_ERROR} px"
-            return _fall_back(pycolmap, work, names, threads, size, reason, result)
+            return _fall_back(pycolmap, work, names, threads, size, stage, reason, result)
     return result
 
 
-def _fall_back(pycolmap, work: Path, names: list[str], threads: int, size, reason: str, pinhole):
+def _fall_back(pycolmap, work: Path, names: list[str], threads: int, size, stage, reason: str, pinhole):
     """The opencv fit where the pinhole one failed (pinhole a PrepError) or fit badly (a Calibration):
     the opencv one when it registers every camera with a lower error, else the pinhole outcome."""
     try:
-        opencv = _fit(pycolmap, work, names, "opencv", threads, size)
+        opencv = _fit(pycolmap, work, names, "opencv", threads, size, stage)
     except PrepError:
         if isinstance(pinhole, PrepError):
             raise pinhole from None

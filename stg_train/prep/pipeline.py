@@ -150,10 +150,7 @@ def _prepare_into(tmp: Path, videos: Path, clips: list[Clip], fps: float, given,
                 f"{LOW_CONFIDENCE}); check it, or give the offsets with --offsets"
                 for c, o in zip(clips, found) if o.confidence is not None and o.confidence < LOW_CONFIDENCE]
     seconds["sync"], t = time.perf_counter() - t, time.perf_counter()
-    calibration_progress = stage("stg-prep calibrate")
-    calibration_progress(0, 1)
-    calibration = calibrate(pictures, tmp / ".work", camera_model, threads)
-    calibration_progress(1, 1)
+    calibration = calibrate(pictures, tmp / ".work", camera_model, threads, progress=stage)
     if calibration.fallback:
         warnings.append(f"camera model {calibration.fallback}")
     seconds["calibrate"], t = time.perf_counter() - t, time.perf_counter()
