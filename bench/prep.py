@@ -3,7 +3,7 @@
 and the pose errors, for rigs of 12 and 20 cameras (docs/datasets.md, "Your own videos").
 
     python bench/prep.py [--cameras 12,20] [--size 640x480] [--frames 30] [--data DIR] [--threads N]
-                         [--train] [--seeds 0,1] [--iterations N]
+                         [--train] [--seeds 0,1] [--iterations N] [--downscale K]
 
 For each camera count the scene (stg_train.synthetic, `stg-synth --cameras C`) is written in the N3V
 layout into DATA/n3v_C_WxH_F/ (reused when there), and from it a folder of raw videos: each camera's lossless
@@ -16,7 +16,8 @@ the rig's largest distance between cameras).
 --train (expensive: four trainings per camera count) trains DATA/prep_C/ and DATA/true_C/, the same
 frames and 3D points with the true cameras (the points moved by the same similarity), with stg-train's
 defaults for each seed, and evaluates each with `stg-eval --align-poses` on its held-out cam00; it
-prints both PSNRs and their difference.
+prints both PSNRs and their difference. --downscale K trains and evaluates both at 1/K of the frames'
+size (the calibration still sees them whole).
 """
 from __future__ import annotations
 
@@ -82,14 +83,15 @@ def true_rig(prepared: Path, out: Path, truth) -> None:
     write_reconstruction(rec, out / "sparse" / "0")
 
 
-def held_out_psnr(data: Path, out: Path, seed: int, iterations: int | None) -> float:
+def held_out_psnr(data: Path, out: Path, seed: int, iterations: int | None, downscale: int) -> float:
     """PSNR on cam00 (held out) of stg-train's defaults on data, by stg-eval --align-poses."""
-    train = ["stg-train", str(data), "--out", str(out), "--seed", str(seed), "--quiet", "--force"]
+    scale = ["--downscale", str(downscale)]
+    train = ["stg-train", str(data), "--out", str(out), "--seed", str(seed), "--quiet", "--force", *scale]
     if iterations:
         train += ["--iterations", str(iterations)]
     subprocess.run(train, check=True, stdout=subprocess.DEVNULL)
     report = out / "eval.json"
-    subprocess.run(["stg-eval", str(out / "model.stg"), str(data), "--align-poses", "--json", str(report)],
+    subprocess.run(["stg-eval", str(out / "model.stg"), str(data), "--align-poses", "--json", str(report), *scale],
                    check=True, stdout=subprocess.DEVNULL)
     return float(json.loads(report.read_text())["psnr"])
 
@@ -104,6 +106,7 @@ def main() -> None:
     ap.add_argument("--train", action="store_true", help="also train both ways and compare (expensive)")
     ap.add_argument("--seeds", default="0,1")
     ap.add_argument("--iterations", type=int, default=None, help="training steps (default stg-train's)")
+    ap.add_argument("--downscale", type=int, default=1, help="train and evaluate at 1/K of the size")
     args = ap.parse_args()
     width, height = map(int, args.size.split("x"))
     data = Path(args.data)
@@ -128,8 +131,10 @@ def main() -> None:
             true_rig(data / f"prep_{count}", data / f"true_{count}", truth)
             for seed in map(int, args.seeds.split(",")):
                 runs = data / "runs"
-                prepared = held_out_psnr(data / f"prep_{count}", runs / f"prep_{count}_s{seed}", seed, args.iterations)
-                true = held_out_psnr(data / f"true_{count}", runs / f"true_{count}_s{seed}", seed, args.iterations)
+                prepared = held_out_psnr(data / f"prep_{count}", runs / f"prep_{count}_s{seed}", seed, args.iterations,
+                                         args.downscale)
+                true = held_out_psnr(data / f"true_{count}", runs / f"true_{count}_s{seed}", seed, args.iterations,
+                                     args.downscale)
                 print(f"{count} cameras, seed {seed}: held-out cam00 {prepared:.2f} dB prepared, {true:.2f} dB "
                       f"true poses, difference {prepared - true:+.2f} dB")
     stages = ("check", "read", "sync", "calibrate", "write")
