@@ -102,10 +102,16 @@ def _probe_video(path: Path) -> Clip:
 
 def find_clips(folder) -> list[Clip]:
     """The cameras of `folder` (module docstring), ordered by name, probed but not checked against each
-    other (check_clips). Other files, and hidden entries, are ignored."""
+    other (check_clips). Other files, and hidden entries, are ignored; a folder that holds a dataset
+    layout's cameras (a dataset already) is refused."""
+    from ..data.layouts import calibration_file
+
     root = Path(folder)
     if not root.is_dir():
         raise PrepError(f"{root}: {'is a file, not' if root.exists() else 'no such'} folder of videos")
+    if (known := calibration_file(root)) is not None:
+        raise PrepError(f"{root}: holds {known}, the cameras of a dataset: stg-train reads it as it is (stg-prep "
+                        "takes videos without poses; copy them into a folder of their own to calibrate them)")
     clips: dict[str, Clip] = {}
     for entry in sorted(root.iterdir()):
         if entry.name.startswith("."):
@@ -161,11 +167,11 @@ def source_signature(clips: list[Clip]) -> str:
 
 def is_raw_videos(folder) -> bool:
     """Whether `folder` is stg-prep's input rather than a dataset: a video file or a folder of frames
-    directly in it, and no layout's cameras (stg_train.data.layouts.has_calibration)."""
-    from ..data.layouts import has_calibration
+    directly in it, and no layout's cameras (stg_train.data.layouts.calibration_file)."""
+    from ..data.layouts import calibration_file
 
     root = Path(folder)
-    if not root.is_dir() or has_calibration(root):
+    if not root.is_dir() or calibration_file(root) is not None:
         return False
     for entry in root.iterdir():
         if entry.name.startswith("."):

@@ -155,6 +155,11 @@ def test_an_out_folder_inside_the_videos(tmp_path, capsys, videos):
     assert not (videos / "prepared").exists()
 
 
+def test_a_dataset_is_not_raw_videos(tmp_path, capsys, videos):
+    np.save(videos / "poses_bounds.npy", np.zeros((2, 17)))
+    _refused(tmp_path, capsys, _args(tmp_path), r"videos: holds poses_bounds\.npy, the cameras of a dataset")
+
+
 def test_cameras_are_named_by_file_and_folder_and_frames_taken_in_number_order(tmp_path, videos):
     for k in (10, 11):
         shutil.copyfile(videos / "cam01" / "0.png", videos / "cam01" / f"{k}.png")
