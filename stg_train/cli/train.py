@@ -321,13 +321,19 @@ def _prepared(args, out: Path) -> str:
         return args.data
     from stg_runtime.progress import progress_stages
 
+    from ..data import DataError
     from ..prep import prepared
 
     target = out / "prep"
-    with progress_stages(enabled=not args.quiet) as stage:
-        report, reused = prepared(args.data, target, fps=args.fps, progress=stage, announce=lambda: print(
-            f"{PROG}: {args.data} holds raw videos: preparing them into {target} (as stg-prep {args.data} {target} "
-            "does)", file=sys.stderr))
+    if out.exists() and not out.is_dir():
+        raise DataError(f"--out {out}: is a file, not a folder")
+    try:
+        with progress_stages(enabled=not args.quiet) as stage:
+            report, reused = prepared(args.data, target, fps=args.fps, progress=stage, announce=lambda: print(
+                f"{PROG}: {args.data} holds raw videos: preparing them into {target} (as stg-prep {args.data} "
+                f"{target} does)", file=sys.stderr))
+    except OSError as e:  # OUT cannot be written
+        raise DataError(f"{e.filename or target}: {e.strerror or e}") from None
     if reused:
         print(f"{PROG}: {args.data} holds raw videos: reusing {target}, prepared from them before", file=sys.stderr)
     else:

@@ -56,3 +56,11 @@ def test_a_bad_folder_of_videos_is_an_error_of_stg_train(tmp_path, capsys, fake_
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith("stg-train: error: ") and "cam00.mp4: the file is empty" in err[-1]
     assert not fake_train.called and not (tmp_path / "run" / "prep").exists()
+
+
+def test_an_out_that_is_a_file(sync_scene, tmp_path, capsys, fake_train):
+    raw = raw_folder(sync_scene[0], tmp_path / "videos", kind="png")
+    (tmp_path / "run").write_text("a file")
+    assert main([str(raw), "--out", str(tmp_path / "run"), "--quiet"]) == 2
+    assert capsys.readouterr().err.strip().endswith("run: is a file, not a folder")
+    assert (tmp_path / "run").read_text() == "a file" and not fake_train.called
