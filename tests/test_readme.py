@@ -80,8 +80,7 @@ def test_docs_pages_stay_reference_sized():
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 #: Python snippets that do not run here, and why (page, index of the ```python block on the page).
 NOT_RUN = {
-    ("docs/datasets.md", 0): "runs COLMAP on your own capture's images",
-    ("docs/datasets.md", 1): "a template: K, Rt, width and height are your calibration's",
+    ("docs/datasets.md", 0): "a template: K, Rt, width and height are your calibration's",
     ("docs/distributed.md", 0): "trains 30000 steps on GPUs, on a Ray cluster",
     ("docs/training.md", 0): "trains 3000 steps (the same call runs in tests/train/test_pipeline.py)",
     ("docs/training.md", 1): "the two calls a strategy receives, not a program",
@@ -150,6 +149,7 @@ def test_documented_command_lines_parse():
     import importlib
 
     modules = {"stg-train": "stg_train.cli.train", "stg-eval": "stg_train.cli.eval", "stg-synth": "stg_train.cli.synth",
+               "stg-prep": "stg_train.cli.prep",
                "stg-convert": "stg_train.cli.convert", "stg-render": "stg_runtime.cli", "stg-view": "stg_runtime.viewer.cli"}
     bad, count = [], 0
     for page, words in _command_lines():

@@ -31,6 +31,9 @@ DATA is a dataset folder in one of these layouts (detected, or forced with --lay
                (one folder per frame); cam00 held out
   rig          your own capture: images/<camera>/<frame>.png (or videos/<camera>.mp4) + one COLMAP
                model of the rig in sparse/0 (one image per camera); the first camera (by name) held out
+A folder of raw videos (one per camera: mp4, mov, mkv, avi, webm, or a folder of frames; no poses) is
+first prepared into OUT/prep/ as stg-prep does (synchronised, calibrated, in the rig layout), and trained
+from there; a later run with the same videos reuses OUT/prep/.
 --test-camera NAME holds out another camera; --fps sets the frame rate of layouts without one (default 30).
 Writes OUT/model.stg (the player's file), OUT/checkpoint.pt and OUT/metrics.json. A video longer than
 --segment-frames is trained as consecutive independent segments, each in OUT/segments/NN/ (checkpoint.pt,
@@ -310,6 +313,35 @@ def main(argv=None) -> int:
         return 130
 
 
+def _prepared(args, out: Path) -> str:
+    """DATA, or where a folder of raw videos given as DATA is prepared (OUT/prep, stg_train.prep), saying so."""
+    from ..prep.inputs import is_raw_videos
+
+    if args.layout != "auto" or not is_raw_videos(args.data):
+        return args.data
+    from stg_runtime.progress import progress_stages
+
+    from ..data import DataError
+    from ..prep import prepared
+
+    target = out / "prep"
+    if out.exists() and not out.is_dir():
+        raise DataError(f"--out {out}: is a file, not a folder")
+    try:
+        with progress_stages(enabled=not args.quiet) as stage:
+            report, reused = prepared(args.data, target, fps=args.fps, progress=stage, announce=lambda: print(
+                f"{PROG}: {args.data} holds raw videos: preparing them into {target} (as stg-prep {args.data} "
+                f"{target} does)", file=sys.stderr))
+    except OSError as e:  # OUT cannot be written
+        raise DataError(f"{e.filename or target}: {e.strerror or e}") from None
+    if reused:
+        print(f"{PROG}: {args.data} holds raw videos: reusing {target}, prepared from them before", file=sys.stderr)
+    else:
+        for warning in report["warnings"]:
+            print(f"{PROG}: warning: {warning}", file=sys.stderr)
+    return str(target)
+
+
 def _run(args, out: Path, given: dict[str, str], argv) -> int:
     """Validate what needs the data and the heavy modules, then train; the exit code."""
     from stg_runtime.player import RenderError
@@ -341,7 +373,8 @@ def _run(args, out: Path, given: dict[str, str], argv) -> int:
     start = time.perf_counter()
     viewer = None
     try:
-        dataset = None if args.demo else load_dataset(args.data, lazy=True, **dataset_options(args))
+        data = args.data if args.demo else _prepared(args, out)
+        dataset = None if args.demo else load_dataset(data, lazy=True, **dataset_options(args))
         claim_output(out, dataset, args.segment_frames, args.segments, resume=args.resume, force=args.force)
         if args.threads:
             set_cpu_threads(args.threads)

@@ -57,6 +57,16 @@ def looks_like_rig(root: Path) -> bool:
     return (root / "sparse").is_dir() and ((root / "images").is_dir() or (root / "videos").is_dir())
 
 
+def calibration_file(root: Path) -> str | None:
+    """The name of the first layout's cameras that root holds (poses_bounds.npy, cameras_parameters.txt,
+    models.json, colmap_0, sparse), else None: videos without them are raw videos for stg-prep
+    (stg_train.prep)."""
+    for name in ("poses_bounds.npy", "cameras_parameters.txt", MODELS_FILE, "colmap_0", "sparse"):
+        if (root / name).exists():
+            return name
+    return None
+
+
 def _function(spec: str) -> Callable:
     """The function a "module:function" string of LAYOUT_SPECS names (its module imported now)."""
     module, _, name = spec.partition(":")

@@ -97,3 +97,33 @@ def corrections_between(estimated: np.ndarray, reference: np.ndarray) -> tuple[n
     reference world_to_camera (K, 4, 4) to the estimated ones (K, 4, 4): estimated = D_c reference."""
     delta = np.einsum("kij,kjl->kil", estimated, np.linalg.inv(reference))
     return np.stack([rotation_vector(d[:3, :3]) for d in delta]), delta[:, :3, 3].copy()
+
+
+def similarity_between(estimated: np.ndarray, truth: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """The similarity of the world (scale s, rotation R (3, 3), shift t (3,); x_truth = s R x_est + t)
+    that takes cameras posed at world_to_camera `estimated` (K, 4, 4) onto `truth` (K, 4, 4), exactly
+    (not to first order): R the rotation nearest to the mean of the cameras' R_truth^T R_est (their
+    orientations agree), then s and t by least squares on the camera centres. For K >= 2 cameras in
+    any two gauges, such as a calibration's and the truth's."""
+    estimated, truth = np.asarray(estimated, np.float64), np.asarray(truth, np.float64)
+    u, _, vt = np.linalg.svd(np.einsum("kji,kjl->il", truth[:, :3, :3], estimated[:, :3, :3]))
+    rotation = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+    a, b = _centres(estimated) @ rotation.T, _centres(truth)
+    da, db = a - a.mean(0), b - b.mean(0)
+    scale = float((da * db).sum() / max((da * da).sum(), 1e-300))
+    return scale, rotation, b.mean(0) - scale * a.mean(0)
+
+
+def aligned_pose_errors(estimated: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(rotation errors (K,) degrees, position errors (K,) in the truth's units) of cameras at
+    world_to_camera `estimated` (K, 4, 4) against `truth` (K, 4, 4) once `estimated` is moved by
+    similarity_between."""
+    scale, rotation, shift = similarity_between(estimated, truth)
+    centres = scale * _centres(np.asarray(estimated, np.float64)) @ rotation.T + shift
+    turned = np.einsum("kij,lj->kil", np.asarray(estimated, np.float64)[:, :3, :3], rotation)  # R_est R^T
+    delta = np.einsum("kij,klj->kil", turned, np.asarray(truth, np.float64)[:, :3, :3])
+    cos = (np.trace(delta, axis1=1, axis2=2) - 1) / 2
+    sin = np.linalg.norm(np.stack([delta[:, 2, 1] - delta[:, 1, 2], delta[:, 0, 2] - delta[:, 2, 0],
+                                   delta[:, 1, 0] - delta[:, 0, 1]], axis=1), axis=1) / 2
+    angles = np.degrees(np.arctan2(sin, cos))
+    return angles, np.linalg.norm(centres - _centres(np.asarray(truth, np.float64)), axis=1)

@@ -12,12 +12,14 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 MODULES = {"stg-train": "stg_train.cli.train", "stg-eval": "stg_train.cli.eval", "stg-synth": "stg_train.cli.synth",
+           "stg-prep": "stg_train.cli.prep",
            "stg-convert": "stg_train.cli.convert", "stg-render": "stg_runtime.cli", "stg-view": "stg_runtime.viewer.cli"}
 #: What --help must not wait for.
 HEAVY = ("torch", "numba", "onnxruntime", "cv2", "pycolmap", "viser", "ray", "av", "skimage", "scipy", "onnx")
 #: A bad argument of each command (answered by the parser).
 BAD = {"stg-train": ["DATA", "--out", "o", "--iterations", "0"], "stg-eval": ["m.stg"],
-       "stg-synth": ["out", "--cameras", "x"], "stg-convert": ["compress", "a.stg"],
+       "stg-synth": ["out", "--cameras", "x"],
+       "stg-prep": ["videos", "out", "--offsets", "x"], "stg-convert": ["compress", "a.stg"],
        "stg-render": ["m.stg", "--out", "o.mp4", "--size", "x"], "stg-view": ["m.stg", "--port", "x"]}
 
 
