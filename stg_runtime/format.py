@@ -28,6 +28,8 @@ PREFIX = struct.Struct("<8sHHQ")  # magic, major, minor, header length
 MAX_HEADER = 64 << 20
 ALIGN = 8
 ENCODINGS = {"f32": np.dtype("<f4"), "f16": np.dtype("<f2"), "u8": np.dtype("u1"), "u16": np.dtype("<u2")}
+DELTA = {"u8-delta": "u8", "u16-delta": "u16"}  # (1.4) u8 / u16 stored channel-major as differences
+PLAIN = (*ENCODINGS, *DELTA)  # encodings of one number per value
 CODECS = ("raw", "zlib")
 MAX_CODEBOOK = 1 << 16  # rows of a "vq" codebook (1.4)
 MAX_PARTS = 64  # parts of a "parts" array (1.4)
@@ -159,8 +161,8 @@ def encoding_parts(encoding: str) -> list[tuple[str, int]] | None:
     """The (encoding, channels) parts of a parts encoding "ENC:WIDTH+ENC:WIDTH..." (see save), None for
     an encoding of the whole array ("f32", "f16", "u8", "u16", "vq", "vq/ENC"); ValueError if unknown."""
     if ":" not in encoding:
-        if encoding not in ENCODINGS and not (encoding == "vq" or (encoding[:3] == "vq/" and encoding[3:] in ENCODINGS)):
-            raise ValueError(f"unknown encoding {encoding!r} (expected one of {sorted(ENCODINGS)}, 'vq', "
+        if encoding not in PLAIN and not (encoding == "vq" or (encoding[:3] == "vq/" and encoding[3:] in PLAIN)):
+            raise ValueError(f"unknown encoding {encoding!r} (expected one of {list(PLAIN)}, 'vq', "
                              "'vq/ENCODING' or parts 'ENCODING:CHANNELS+...')")
         return None
     parts = []
@@ -174,7 +176,7 @@ def encoding_parts(encoding: str) -> list[tuple[str, int]] | None:
     return parts
 
 
-def _entry(values: np.ndarray, encoding: str, blob) -> dict:
+def encode_array(values: np.ndarray, encoding: str, blob) -> dict:
     """The header's array entry for `values` (N, ...) written with `encoding` (see save); blob(bytes)
     stores a payload in the data section and returns its blob entry."""
     x = _channels(np.asarray(values, np.float32))
@@ -185,7 +187,7 @@ def _entry(values: np.ndarray, encoding: str, blob) -> dict:
             raise ValueError(f"encoding {encoding!r} covers {sum(w for _, w in parts)} of {x.shape[1]} channels")
         starts = np.cumsum([0] + [w for _, w in parts])
         return {**head, "encoding": "parts",
-                "parts": [_entry(x[:, a:b], enc, blob) for (enc, _), a, b in zip(parts, starts, starts[1:])]}
+                "parts": [encode_array(x[:, a:b], enc, blob) for (enc, _), a, b in zip(parts, starts, starts[1:])]}
     if encoding.startswith("vq"):
         if not np.all(np.isfinite(x)):
             raise ValueError("non-finite values cannot be written")
@@ -196,9 +198,12 @@ def _entry(values: np.ndarray, encoding: str, blob) -> dict:
         if len(rows) == 0:  # no Gaussians: a codebook of one row of zeros
             rows = np.zeros((1, x.shape[1]), np.float32)
         dtype = np.dtype("u1") if len(rows) <= 256 else np.dtype("<u2")
-        return {**head, "encoding": "vq", "codebook": _entry(rows, encoding[3:] or "f32", blob),
+        return {**head, "encoding": "vq", "codebook": encode_array(rows, encoding[3:] or "f32", blob),
                 "data": blob(index.reshape(-1).astype(dtype).tobytes())}
-    stored, params = quantize(values, encoding)
+    stored, params = quantize(values, DELTA.get(encoding, encoding))
+    if encoding in DELTA:  # channel-major, each value minus the one before it (modulo 2^bits)
+        stored = np.ascontiguousarray(_channels(stored).T)
+        stored[:, 1:] -= stored[:, :-1].copy()
     return {**head, "encoding": encoding, **params, "data": blob(stored.tobytes())}
 
 
@@ -232,7 +237,7 @@ def dumps(model: Model, encodings: dict[str, str] | None = None, codec: str = "z
         attributes = {}
         for name, values in seg.arrays().items():
             try:
-                attributes[name] = _entry(values, encodings.get(name, "f32"), blob)
+                attributes[name] = encode_array(values, encodings.get(name, "f32"), blob)
             except ValueError as e:
                 raise ValueError(f"segment {i}, attribute {name!r}: {e}") from None
         decoder = None if seg.decoder is None else {"activation": seg.activation,
@@ -278,8 +283,9 @@ def save(model: Model, path, encodings: dict[str, str] | None = None, codec: str
          provenance: dict | None = None) -> None:
     """Write `model` to `path` atomically (temporary file in the same directory, fsync, rename).
 
-    encodings: attribute name -> "f32" (default), "f16", "u8" or "u16"; (1.4) "vq/ENC": a codebook of
-    the attribute's distinct rows (at most 65536; stored in ENC, one of those four, "vq" = "vq/f32")
+    encodings: attribute name -> "f32" (default), "f16", "u8" or "u16"; (1.4) "u8-delta", "u16-delta"
+    (u8 / u16 stored as differences, for sorted values); "vq/ENC": a codebook of the attribute's
+    distinct rows (at most 65536; stored in ENC, one of those six, "vq" = "vq/f32")
     and an index per Gaussian; or parts "ENC:CHANNELS+ENC:CHANNELS...", consecutive channels each in
     one of the encodings above (e.g. "u16:3+vq/u8:9" for position coefficient 0 and the motion).
     codec: "zlib" (level 0-9) or "raw" for the attribute blobs; the decoder is always stored raw. provenance overrides
@@ -488,7 +494,7 @@ def _plan(spec, shape: tuple, where: str, inside: str = "") -> int:
         raise ValueError(f"{where}: shape {spec['shape']} disagrees with count and degrees, expected {list(shape)}")
     encoding = _get(spec, "encoding", str, where)
     channels = math.prod(shape[1:])
-    if encoding in ENCODINGS:
+    if encoding in PLAIN:
         return 0
     if encoding == "vq" and inside != "codebook":
         book = _get(spec, "codebook", dict, where)
@@ -543,10 +549,13 @@ def _values(spec: dict, shape: tuple, section: memoryview, where: str) -> np.nda
         if index.size and int(index.max()) >= rows:
             raise ValueError(f"{where}: index {int(index.max())} beyond the codebook's {rows} rows")
         return book[index].reshape(shape)
-    size = math.prod(shape) * ENCODINGS[encoding].itemsize
-    stored = np.frombuffer(_blob(_get(spec, "data", dict, where), section, size, where), ENCODINGS[encoding])
+    base = DELTA.get(encoding, encoding)
+    size = math.prod(shape) * ENCODINGS[base].itemsize
+    stored = np.frombuffer(_blob(_get(spec, "data", dict, where), section, size, where), ENCODINGS[base])
+    if encoding in DELTA:  # (1.4) running sums (modulo 2^bits) of each channel's differences
+        stored = np.cumsum(stored.reshape(channels, shape[0]), axis=1, dtype=stored.dtype).T
     try:
-        return dequantize(stored.reshape(shape), encoding, spec)
+        return dequantize(stored.reshape(shape), base, spec)
     except (ValueError, TypeError) as e:
         raise ValueError(f"{where}: {e}") from e
 

@@ -13,7 +13,8 @@ from stg_runtime.model import Model
 
 from .test_format import attr, craft, make_model, refused, split
 
-ENCODINGS = {"features": "vq/u8", "position": "u16:3+vq/f16:9", "rotation": "vq", "scale": "f16:1+vq/u16:2"}
+ENCODINGS = {"features": "vq/u8", "position": "u16-delta:3+vq/f16:9", "rotation": "vq", "scale": "f16:1+vq/u16:2",
+             "opacity": "u8-delta"}
 
 
 def clustered(seed=0, rows=(5, 300), count=40):
@@ -69,6 +70,22 @@ def test_decoded_values_write_again_to_the_same_values(compact_bytes):
     for a, b in zip(model.segments, stg.loads(again).segments):
         for name, values in a.arrays().items():
             np.testing.assert_allclose(getattr(b, name), values, rtol=0, atol=2.0 ** -21 * np.abs(values).max())
+
+
+@pytest.mark.parametrize("bits", [8, 16])
+def test_delta_encodings_store_channel_major_differences(bits):
+    model = make_model(count=300)
+    plain, delta = f"u{bits}", f"u{bits}-delta"
+    header, section = split(stg.dumps(model, {"position": delta}, codec="raw"))
+    spec = attr(header, "position")
+    dtype = np.dtype("u1" if bits == 8 else "<u2")
+    stored = np.frombuffer(section, dtype, 300 * 12, spec["data"]["offset"]).reshape(12, 300)
+    q, params = stg.quantize(model.segments[0].position, plain)
+    assert params == {"offset": spec["offset"], "scale": spec["scale"]}
+    np.testing.assert_array_equal(np.cumsum(stored, axis=1, dtype=dtype), q.reshape(300, 12).T)
+    assert stored[3, 1] == (int(q[1, 1, 0]) - int(q[0, 1, 0])) % (1 << bits)  # channel 3 = coefficient 1, x
+    np.testing.assert_array_equal(stg.loads(stg.dumps(model, {"position": delta})).segments[0].position,
+                                  stg.loads(stg.dumps(model, {"position": plain})).segments[0].position)
 
 
 def test_codebooks_of_more_than_256_rows_take_two_byte_indices():
@@ -131,6 +148,10 @@ def _book(h, name="features"):
     (lambda h: attr(h, "position").update(parts={}), "'parts' must be of type list"),
     (lambda h: attr(h, "position")["parts"][0].update(encoding="parts"), "part 0: unknown encoding 'parts' .*part"),
     (lambda h: attr(h, "position")["parts"].__setitem__(0, 7), "part 0: shape must be"),
+    (lambda h: attr(h, "opacity")["data"].update(length=3), "zlib|imply"),
+    (lambda h: attr(h, "opacity").update(scale=[1e38]), "not all finite"),
+    (lambda h: attr(h, "opacity").pop("offset"), "u8 needs lists"),
+    (lambda h: attr(h, "opacity").update(encoding="u32-delta"), "unknown encoding 'u32-delta'"),
 ])
 def test_crafted_compact_arrays_are_refused(compact_bytes, tmp_path, edit, match):
     refused(craft(compact_bytes, edit, minor=4), match, tmp_path)
