@@ -32,7 +32,7 @@ from stg_runtime.web.export import export_web  # noqa: E402
 ROOT = Path(__file__).resolve().parents[2]
 VECTORS = ROOT / "formats" / "vectors"
 MALICIOUS = ROOT / "tests" / "runtime" / "malicious"
-NAMES = ["lite", "full", "full_quantized", "sh", "full_fisheye", "full_crossfade"]
+NAMES = ["lite", "full", "full_quantized", "sh", "full_fisheye", "full_crossfade", "full_compact"]
 MIN_PSNR = 40.0
 
 
@@ -109,6 +109,25 @@ def test_vector_matches_the_player(site, browser, name, path):
             assert reference.std() > 0.01  # something to see
             values.append(page.psnr(image[..., :3], reference))
     print(f"\n{name} ({path}): PSNR {min(values):.2f} .. {max(values):.2f} dB over {len(values)} views")
+    assert min(values) >= MIN_PSNR, values
+
+
+def test_a_web_preset_file_matches_the_player(site, browser):
+    """stg-convert compress --preset web (format 1.4: parts, differences) of the demo model, played by
+    the page and by the Player at the first frame and later, from the file's first camera."""
+    from stg_runtime.demo import demo_model
+    from stg_train.convert.compress import compress
+
+    folder, url = site
+    model, settings = compress(demo_model("full", num_frames=4), "web")
+    assert any(":" in e for e in settings.encodings.values())
+    stg_format.save(model, folder / "demo.web.stg", **settings.save_kwargs())
+    player = Player(folder / "demo.web.stg", device="cpu")
+    open_model(browser, url, "demo.web.stg")
+    camera = player.cameras[0].resized(160, 120)
+    values = [page.psnr(page.snapshot(browser, camera.to_dict(), t)[..., :3], player.render(camera, t))
+              for t in (0.0, 0.07)]
+    print(f"\nweb preset: PSNR {min(values):.2f} .. {max(values):.2f} dB")
     assert min(values) >= MIN_PSNR, values
 
 
