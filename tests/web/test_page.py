@@ -393,6 +393,8 @@ def ranged_site(tmp_path_factory):
     stg_format.save(model, folder / "long.stg")
     stg_format.save(long_crossfaded_video(), folder / "long_crossfade.stg")
     stg_format.save(model, folder / "raw.stg", codec="raw")
+    stg_format.save(model, folder / "long_compact.stg",  # format 1.4: parts, codebooks, differences
+                    encodings={"opacity": "vq/u8", "position": "u16-delta:3+vq/f16:9", "features": "u8-delta:1+vq/u8:2"})
     data = bytearray((folder / "raw.stg").read_bytes())
     data[-40] ^= 0xFF  # the low byte of a float of the last segment (stored raw): only the checksum can tell
     (folder / "long_damaged.stg").write_bytes(bytes(data))
@@ -421,6 +423,25 @@ def test_long_video_streams_segments(ranged_site, browser):
         assert page.psnr(image[..., :3], player.render(camera, t)) >= MIN_PSNR, t
     sent = sum(n for path, n in page.RangeHandler.sent if path == "/long.stg")
     assert sent == size, page.RangeHandler.sent  # every byte once
+    assert browser.execute_script("return [window.stg.player.file.checked, window.stg.error]") == [True, None]
+
+
+def test_long_compact_video_streams_segments(ranged_site, browser):
+    """A format 1.4 file (parts, codebooks, differences) streams as a 1.3 one: the first frame needs
+    its segment's bytes (with their codebooks and parts) and the one ahead, not the rest."""
+    folder, url = ranged_site
+    player = Player(folder / "long_compact.stg", device="cpu")
+    camera = player.cameras[0]
+    page.RangeHandler.sent.clear()
+    open_model(browser, url, "long_compact.stg")
+    image = page.snapshot(browser, camera.to_dict(), 0.0)
+    assert page.psnr(image[..., :3], player.render(camera, 0.0)) >= MIN_PSNR
+    sent = sum(n for path, n in page.RangeHandler.sent if path == "/long_compact.stg")
+    size = (folder / "long_compact.stg").stat().st_size
+    assert sent < 0.75 * size, (sent, size)
+    for t in (3.95, 2.5):  # the last segment first: its first blob (a codebook) lies past the one before
+        image = page.snapshot(browser, camera.to_dict(), t)
+        assert page.psnr(image[..., :3], player.render(camera, t)) >= MIN_PSNR, t
     assert browser.execute_script("return [window.stg.player.file.checked, window.stg.error]") == [True, None]
 
 
