@@ -136,9 +136,10 @@ def test_morton_order_is_a_permutation_that_keeps_renders():
 #: preset's loss) are 50.9 dB for balanced and 43.8 dB for small. Random positions and features leave
 #: zlib nothing to find, so this model is the hard case: on a trained model (bench/compress.py)
 #: balanced is below 1/5 and small below 1/8 of the float32 file.
-#: web (format 1.4; budget 46.1 dB): full 0.139 at 46.2 dB, lite 0.207 at 46.1 dB (seed 3).
-LIMITS = {"full": {"lossless": (1.01, np.inf), "balanced": (0.24, 50.5), "small": (0.195, 43.5), "web": (0.15, 45.5)},
-          "lite": {"lossless": (1.01, np.inf), "balanced": (0.31, 50.5), "small": (0.27, 43.5), "web": (0.22, 45.5)}}
+#: web (format 1.4; a 38 dB model assumed, budget 51.1 dB): full 0.163-0.172 at 51.1 dB, lite
+#: 0.236-0.237 at 51.3 dB (seeds 3 and 4): smaller than small at the fidelity of balanced.
+LIMITS = {"full": {"lossless": (1.01, np.inf), "balanced": (0.24, 50.5), "small": (0.195, 43.5), "web": (0.18, 50.5)},
+          "lite": {"lossless": (1.01, np.inf), "balanced": (0.31, 50.5), "small": (0.27, 43.5), "web": (0.245, 50.5)}}
 
 
 @pytest.mark.parametrize("kind", ["full", "lite"])
