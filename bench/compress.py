@@ -70,7 +70,8 @@ def main() -> None:
         print(report.format(), flush=True)
         psnr = evaluate_player(Player(path, device="cpu"), ds)["psnr"]
         rows.append((name, report.file_after, report.gaussians_after, psnr, psnr - base, seconds, load_seconds(path)))
-    print("\n| preset | file bytes | ratio to float32 | Gaussians | held-out PSNR | PSNR change | compress time | read time |")
+    print("\n| preset | file bytes | ratio to float32 | Gaussians | held-out PSNR | PSNR change | compress time | "
+          "read time |")
     print("|---|---|---|---|---|---|---|---|")
     for name, size, count, psnr, change, seconds, load in rows:
         print(f"| {name} | {size:,} | {size / f32:.3f} (1/{f32 / size:.1f}) | {count:,} | {psnr:.2f} dB | "

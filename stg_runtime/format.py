@@ -46,8 +46,9 @@ class Limits:
     The defaults hold the models this project makes with room to spare; to open an honest bigger model,
     pass larger ones: load(path, limits=Limits(max_gaussians=...)), or Player(path, limits=...).
     max_gaussians: per segment; max_segments; max_frames: of the whole video; max_degree: of the
-    position and rotation polynomials; decoded arrays may take at most max_expansion x the file's size
-    plus expansion_allowance bytes (a zlib bomb cannot make a small file large in memory);
+    position and rotation polynomials; decoded arrays (and format 1.4's codebooks) may take at most
+    max_expansion x the file's size plus expansion_allowance bytes (a zlib bomb cannot make a small
+    file large in memory);
     max_image_side: a stored camera's width and height, in pixels.
     """
 
@@ -145,9 +146,9 @@ def error_bound(array, encoding: str):
 def written_version(kind: str, camera_models=(), segments=(), encodings=()) -> tuple[int, int]:
     """The version a writer puts in a file of `kind` whose cameras have `camera_models`, whose
     `segments` (Segment objects) are these and whose attributes use `encodings` (strings, see save):
-    the lowest that holds it, 1.4 with a "vq" or parts encoding (added in 1.4), 1.3 with a segment's
-    context or crossfade (added in 1.3), 1.2 with a camera other than a pinhole (added in 1.2), 1.1 for
-    "sh" (added in 1.1), else 1.0, which every 1.x reader opens."""
+    the lowest that holds it, 1.4 with an encoding other than f32, f16, u8 and u16 (added in 1.4), 1.3
+    with a segment's context or crossfade (added in 1.3), 1.2 with a camera other than a pinhole (added
+    in 1.2), 1.1 for "sh" (added in 1.1), else 1.0, which every 1.x reader opens."""
     if any(e not in ENCODINGS for e in encodings):
         return (1, 4)
     if any(s.crossfade_frames or any(s.context_frames) for s in segments):
@@ -159,7 +160,7 @@ def written_version(kind: str, camera_models=(), segments=(), encodings=()) -> t
 
 def encoding_parts(encoding: str) -> list[tuple[str, int]] | None:
     """The (encoding, channels) parts of a parts encoding "ENC:WIDTH+ENC:WIDTH..." (see save), None for
-    an encoding of the whole array ("f32", "f16", "u8", "u16", "vq", "vq/ENC"); ValueError if unknown."""
+    an encoding of the whole array (one of PLAIN, "vq", "vq/ENC"); ValueError if unknown."""
     if ":" not in encoding:
         if encoding not in PLAIN and not (encoding == "vq" or (encoding[:3] == "vq/" and encoding[3:] in PLAIN)):
             raise ValueError(f"unknown encoding {encoding!r} (expected one of {list(PLAIN)}, 'vq', "
@@ -422,8 +423,8 @@ def _layout(s, where: str, kind: str, limits: Limits) -> tuple:
         if name not in attributes:
             raise ValueError(f"{where}: missing attribute {name!r}")
     channels = _feature_channels(attributes["features"], kind, f"{where}, attribute 'features'")
-    extra = sum(_plan(attributes[name], attribute_shape(name, count, pdeg, qdeg, channels), f"{where}, attribute {name!r}")
-                for name in ATTRIBUTES)
+    extra = sum(_plan(attributes[name], attribute_shape(name, count, pdeg, qdeg, channels),
+                      f"{where}, attribute {name!r}") for name in ATTRIBUTES)
     return start, frames, count, pdeg, qdeg, channels, extra
 
 

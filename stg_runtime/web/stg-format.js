@@ -368,19 +368,24 @@ function plan(spec, shape, where, inside = "") {
     const book = get(spec, "codebook", "dict", where);
     const rows = Array.isArray(book.shape) && book.shape.length ? book.shape[0] : null;
     if (!(Number.isInteger(rows) && rows >= 1 && rows <= MAX_CODEBOOK)) {
-      fail(`${where}: a codebook's shape must be [K, ${channels}] with K in [1, ${MAX_CODEBOOK}], got ${JSON.stringify(book.shape ?? null)}`);
+      fail(`${where}: a codebook's shape must be [K, ${channels}] with K in [1, ${MAX_CODEBOOK}], `
+        + `got ${JSON.stringify(book.shape ?? null)}`);
     }
     plan(book, [rows, channels], `${where}, codebook`, "codebook");
     return rows * channels;
   }
   if (encoding === "parts" && !inside) {
     const parts = get(spec, "parts", "list", where);
-    if (!(parts.length >= 1 && parts.length <= MAX_PARTS)) fail(`${where}: ${parts.length} parts, expected 1 to ${MAX_PARTS}`);
+    if (!(parts.length >= 1 && parts.length <= MAX_PARTS)) {
+      fail(`${where}: ${parts.length} parts, expected 1 to ${MAX_PARTS}`);
+    }
     let extra = 0, covered = 0;
     for (let j = 0; j < parts.length; j++) {
       const part = parts[j];
       const width = isObject(part) && Array.isArray(part.shape) && part.shape.length === 2 ? part.shape[1] : null;
-      if (!(Number.isInteger(width) && width >= 1)) fail(`${where}, part ${j}: shape must be [${shape[0]}, channels >= 1]`);
+      if (!(Number.isInteger(width) && width >= 1)) {
+        fail(`${where}, part ${j}: shape must be [${shape[0]}, channels >= 1]`);
+      }
       covered += width;
       if (covered > channels) break;
       extra += plan(part, [shape[0], width], `${where}, part ${j}`, "part");
@@ -458,7 +463,9 @@ async function values(spec, count, channels, section, where) {
 async function array(spec, shape, section, where) {
   const count = shape[0], channels = shape.slice(1).reduce((a, b) => a * b, 1);
   const out = await values(spec, count, channels, section, where);
-  for (let i = 0; i < out.length; i++) if (!Number.isFinite(out[i])) fail(`${where}: decoded values are not all finite`);
+  for (let i = 0; i < out.length; i++) {
+    if (!Number.isFinite(out[i])) fail(`${where}: decoded values are not all finite`);
+  }
   return out;
 }
 

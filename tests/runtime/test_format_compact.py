@@ -51,7 +51,8 @@ def test_round_trip_and_version(compact_bytes):
     np.testing.assert_array_equal(back.rotation, seg.rotation)
     bound = stg.error_bound(np.unique(seg.features, axis=0), "u8")  # the codebook's u8 bound per channel
     assert np.all(np.abs(back.features - seg.features) <= bound)
-    np.testing.assert_allclose(back.position[:, 0], seg.position[:, 0], atol=stg.error_bound(seg.position[:, 0], "u16").max())
+    np.testing.assert_allclose(back.position[:, 0], seg.position[:, 0],
+                               atol=stg.error_bound(seg.position[:, 0], "u16").max())
     header, _ = split(compact_bytes)
     features = attr(header, "features")
     assert features["encoding"] == "vq" and features["codebook"]["shape"] == [5, 9]
@@ -133,7 +134,7 @@ def _book(h, name="features"):
     (lambda h: _book(h).update(shape=[0, 9]), r"codebook's shape must be \[K, 9\] with K in \[1, 65536\]"),
     (lambda h: _book(h).update(shape=[65537, 9]), "K in"),
     (lambda h: _book(h).update(shape="5x9"), "K in"),
-    (lambda h: _book(h).update(shape=[4, 9]), "zlib data does not end after 36 bytes"),  # offset/scale lists fit, the blob does not
+    (lambda h: _book(h).update(shape=[4, 9]), "zlib data does not end after 36 bytes"),  # the blob is longer
     (lambda h: attr(h, "features").pop("codebook"), "missing field 'codebook'"),
     (lambda h: _book(h).update(encoding="vq"), "codebook: unknown encoding 'vq' .*not allowed in a codebook"),
     (lambda h: _book(h).update(encoding="parts"), "not allowed in a codebook"),

@@ -394,7 +394,8 @@ def ranged_site(tmp_path_factory):
     stg_format.save(long_crossfaded_video(), folder / "long_crossfade.stg")
     stg_format.save(model, folder / "raw.stg", codec="raw")
     stg_format.save(model, folder / "long_compact.stg",  # format 1.4: parts, codebooks, differences
-                    encodings={"opacity": "vq/u8", "position": "u16-delta:3+vq/f16:9", "features": "u8-delta:1+vq/u8:2"})
+                    encodings={"opacity": "vq/u8", "position": "u16-delta:3+vq/f16:9",
+                               "features": "u8-delta:1+vq/u8:2"})
     data = bytearray((folder / "raw.stg").read_bytes())
     data[-40] ^= 0xFF  # the low byte of a float of the last segment (stored raw): only the checksum can tell
     (folder / "long_damaged.stg").write_bytes(bytes(data))
