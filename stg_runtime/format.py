@@ -28,7 +28,7 @@ PREFIX = struct.Struct("<8sHHQ")  # magic, major, minor, header length
 MAX_HEADER = 64 << 20
 ALIGN = 8
 ENCODINGS = {"f32": np.dtype("<f4"), "f16": np.dtype("<f2"), "u8": np.dtype("u1"), "u16": np.dtype("<u2")}
-DELTA = {"u8-delta": "u8", "u16-delta": "u16"}  # (1.4) u8 / u16 stored channel-major as differences
+DELTA = {"u8-delta": "u8", "u16-delta": "u16"}  # (1.4) u8 / u16 as channel-major differences, byte planes
 PLAIN = (*ENCODINGS, *DELTA)  # encodings of one number per value
 CODECS = ("raw", "zlib")
 MAX_CODEBOOK = 1 << 16  # rows of a "vq" codebook (1.4)
@@ -205,6 +205,7 @@ def encode_array(values: np.ndarray, encoding: str, blob) -> dict:
     if encoding in DELTA:  # channel-major, each value minus the one before it (modulo 2^bits)
         stored = np.ascontiguousarray(_channels(stored).T)
         stored[:, 1:] -= stored[:, :-1].copy()
+        stored = stored.reshape(-1).view(np.uint8).reshape(-1, stored.itemsize).T  # byte planes, low first
     return {**head, "encoding": encoding, **params, "data": blob(stored.tobytes())}
 
 
@@ -553,8 +554,10 @@ def _values(spec: dict, shape: tuple, section: memoryview, where: str) -> np.nda
     base = DELTA.get(encoding, encoding)
     size = math.prod(shape) * ENCODINGS[base].itemsize
     stored = np.frombuffer(_blob(_get(spec, "data", dict, where), section, size, where), ENCODINGS[base])
-    if encoding in DELTA:  # (1.4) running sums (modulo 2^bits) of each channel's differences
-        stored = np.cumsum(stored.reshape(channels, shape[0]), axis=1, dtype=stored.dtype).T
+    if encoding in DELTA:  # (1.4) byte planes of differences -> running sums (modulo 2^bits) per channel
+        planes = np.frombuffer(stored.tobytes(), np.uint8).reshape(stored.itemsize, -1)
+        stored = np.ascontiguousarray(planes.T).view(stored.dtype).reshape(channels, shape[0])
+        stored = np.cumsum(stored, axis=1, dtype=stored.dtype).T
     try:
         return dequantize(stored.reshape(shape), base, spec)
     except (ValueError, TypeError) as e:

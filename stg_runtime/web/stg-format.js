@@ -414,13 +414,13 @@ async function plainValues(spec, count, channels, section, where) {
   else if (encoding === "u8") for (let i = 0; i < n; i++) out[i] = offset[i % channels] + scale[i % channels] * raw[i];
   else if (encoding === "u16") {
     for (let i = 0; i < n; i++) out[i] = offset[i % channels] + scale[i % channels] * view.getUint16(2 * i, true);
-  } else {  // (1.4) channel-major differences modulo 2^bits: running sums
+  } else {  // (1.4) channel-major differences modulo 2^bits (u16: a plane of low bytes, then of high): running sums
     const wide = base === "u16", mask = wide ? 0xffff : 0xff;
     for (let c = 0; c < channels; c++) {
       let q = 0;
       for (let i = 0; i < count; i++) {
         const k = c * count + i;
-        q = (q + (wide ? view.getUint16(2 * k, true) : raw[k])) & mask;
+        q = (q + (wide ? raw[k] | (raw[n + k] << 8) : raw[k])) & mask;
         out[i * channels + c] = offset[c] + scale[c] * q;
       }
     }

@@ -75,12 +75,15 @@ def test_decoded_values_write_again_to_the_same_values(compact_bytes):
 
 @pytest.mark.parametrize("bits", [8, 16])
 def test_delta_encodings_store_channel_major_differences(bits):
+    """Differences of each channel in turn; u16-delta's as a plane of low bytes, then of high bytes."""
     model = make_model(count=300)
     plain, delta = f"u{bits}", f"u{bits}-delta"
     header, section = split(stg.dumps(model, {"position": delta}, codec="raw"))
     spec = attr(header, "position")
     dtype = np.dtype("u1" if bits == 8 else "<u2")
-    stored = np.frombuffer(section, dtype, 300 * 12, spec["data"]["offset"]).reshape(12, 300)
+    planes = np.frombuffer(section, np.uint8, 300 * 12 * dtype.itemsize, spec["data"]["offset"])
+    planes = planes.reshape(dtype.itemsize, 300 * 12).astype(dtype)
+    stored = (planes[0] if bits == 8 else planes[0] | planes[1] << 8).reshape(12, 300)
     q, params = stg.quantize(model.segments[0].position, plain)
     assert params == {"offset": spec["offset"], "scale": spec["scale"]}
     np.testing.assert_array_equal(np.cumsum(stored, axis=1, dtype=dtype), q.reshape(300, 12).T)
