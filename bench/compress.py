@@ -1,6 +1,7 @@
 #!/usr/bin/env python
 """Compression presets on a trained model of the default synthetic scene: file size, ratio to the
-float32 file, Gaussians, held-out PSNR (runtime Player, cam00, every frame) and its change.
+float32 file, Gaussians, held-out PSNR (runtime Player, cam00, every frame) and its change, the time
+to compress and the time to read the file (stg_runtime.format.load, the best of 3).
 
     python bench/compress.py [--model MODEL.stg] [--data DIR] [--iterations N] [--out DIR] [--threads 2]
 
@@ -58,7 +59,7 @@ def main() -> None:
     base = evaluate_player(Player(model, device="cpu"), ds)["psnr"]
     print(f"{model_path}: {model.kind} model, {sum(s.count for s in model.segments)} Gaussians, "
           f"float32 file {f32} bytes, held-out PSNR {base:.2f} dB ({ds})", flush=True)
-    rows = [("float32 (trainer)", f32, sum(s.count for s in model.segments), base, 0.0, 0.0)]
+    rows = [("float32 (trainer)", f32, sum(s.count for s in model.segments), base, 0.0, 0.0, load_seconds(model_path))]
     runs = [(preset, True) for preset in PRESETS] + [(preset, False) for preset in PRESETS if preset != "lossless"]
     for preset, with_data in runs:
         name = preset if with_data else f"{preset}, no --data"
@@ -68,12 +69,23 @@ def main() -> None:
         seconds = time.perf_counter() - start
         print(report.format(), flush=True)
         psnr = evaluate_player(Player(path, device="cpu"), ds)["psnr"]
-        rows.append((name, report.file_after, report.gaussians_after, psnr, psnr - base, seconds))
-    print("\n| preset | file bytes | ratio to float32 | Gaussians | held-out PSNR | PSNR change | compress time |")
-    print("|---|---|---|---|---|---|---|")
-    for name, size, count, psnr, change, seconds in rows:
+        rows.append((name, report.file_after, report.gaussians_after, psnr, psnr - base, seconds, load_seconds(path)))
+    print("\n| preset | file bytes | ratio to float32 | Gaussians | held-out PSNR | PSNR change | compress time | "
+          "read time |")
+    print("|---|---|---|---|---|---|---|---|")
+    for name, size, count, psnr, change, seconds, load in rows:
         print(f"| {name} | {size:,} | {size / f32:.3f} (1/{f32 / size:.1f}) | {count:,} | {psnr:.2f} dB | "
-              f"{change:+.3f} dB | {seconds:.0f} s |")
+              f"{change:+.3f} dB | {seconds:.0f} s | {1000 * load:.0f} ms |")
+
+
+def load_seconds(path) -> float:
+    """The best of 3 times to read `path` with stg_runtime.format.load (checksum, inflate, decode)."""
+    times = []
+    for _ in range(3):
+        start = time.perf_counter()
+        stg_format.load(path)
+        times.append(time.perf_counter() - start)
+    return min(times)
 
 
 if __name__ == "__main__":

@@ -22,13 +22,17 @@ from .camera import Camera
 from .model import ACTIVATIONS, ATTRIBUTES, FEATURE_CHANNELS, KINDS, Model, Segment, allowed_channels, attribute_shape
 
 MAGIC = b"\x89STG\r\n\x1a\n"
-VERSION = (1, 3)  # the version this module reads and writes; see written_version()
+VERSION = (1, 4)  # the version this module reads and writes; see written_version()
 MAX_SPAN = 2 ** 24  # the largest context_frames / crossfade_frames value a reader accepts (1.3)
 PREFIX = struct.Struct("<8sHHQ")  # magic, major, minor, header length
 MAX_HEADER = 64 << 20
 ALIGN = 8
 ENCODINGS = {"f32": np.dtype("<f4"), "f16": np.dtype("<f2"), "u8": np.dtype("u1"), "u16": np.dtype("<u2")}
+DELTA = {"u8-delta": "u8", "u16-delta": "u16"}  # (1.4) u8 / u16 as channel-major differences, byte planes
+PLAIN = (*ENCODINGS, *DELTA)  # encodings of one number per value
 CODECS = ("raw", "zlib")
+MAX_CODEBOOK = 1 << 16  # rows of a "vq" codebook (1.4)
+MAX_PARTS = 64  # parts of a "parts" array (1.4)
 
 
 class FormatError(ValueError):
@@ -42,8 +46,9 @@ class Limits:
     The defaults hold the models this project makes with room to spare; to open an honest bigger model,
     pass larger ones: load(path, limits=Limits(max_gaussians=...)), or Player(path, limits=...).
     max_gaussians: per segment; max_segments; max_frames: of the whole video; max_degree: of the
-    position and rotation polynomials; decoded arrays may take at most max_expansion x the file's size
-    plus expansion_allowance bytes (a zlib bomb cannot make a small file large in memory);
+    position and rotation polynomials; decoded arrays (and format 1.4's codebooks) may take at most
+    max_expansion x the file's size plus expansion_allowance bytes (a zlib bomb cannot make a small
+    file large in memory);
     max_image_side: a stored camera's width and height, in pixels.
     """
 
@@ -138,16 +143,70 @@ def error_bound(array, encoding: str):
 # -- writing ------------------------------------------------------------------------------------
 
 
-def written_version(kind: str, camera_models=(), segments=()) -> tuple[int, int]:
-    """The version a writer puts in a file of `kind` whose cameras have `camera_models` and whose
-    `segments` (Segment objects) are these: the lowest that holds it, 1.3 with a segment's context or
-    crossfade (added in 1.3), 1.2 with a camera other than a pinhole (added in 1.2), 1.1 for "sh"
-    (added in 1.1), else 1.0, which every 1.x reader opens."""
+def written_version(kind: str, camera_models=(), segments=(), encodings=()) -> tuple[int, int]:
+    """The version a writer puts in a file of `kind` whose cameras have `camera_models`, whose
+    `segments` (Segment objects) are these and whose attributes use `encodings` (strings, see save):
+    the lowest that holds it, 1.4 with an encoding other than f32, f16, u8 and u16 (added in 1.4), 1.3
+    with a segment's context or crossfade (added in 1.3), 1.2 with a camera other than a pinhole (added
+    in 1.2), 1.1 for "sh" (added in 1.1), else 1.0, which every 1.x reader opens."""
+    if any(e not in ENCODINGS for e in encodings):
+        return (1, 4)
     if any(s.crossfade_frames or any(s.context_frames) for s in segments):
         return (1, 3)
     if any(m != "pinhole" for m in camera_models):
         return (1, 2)
     return (1, 1) if kind == "sh" else (1, 0)
+
+
+def encoding_parts(encoding: str) -> list[tuple[str, int]] | None:
+    """The (encoding, channels) parts of a parts encoding "ENC:WIDTH+ENC:WIDTH..." (see save), None for
+    an encoding of the whole array (one of PLAIN, "vq", "vq/ENC"); ValueError if unknown."""
+    if ":" not in encoding:
+        if encoding not in PLAIN and not (encoding == "vq" or (encoding[:3] == "vq/" and encoding[3:] in PLAIN)):
+            raise ValueError(f"unknown encoding {encoding!r} (expected one of {list(PLAIN)}, 'vq', "
+                             "'vq/ENCODING' or parts 'ENCODING:CHANNELS+...')")
+        return None
+    parts = []
+    for text in encoding.split("+"):
+        enc, _, width = text.partition(":")
+        if encoding_parts(enc) is not None or not width.isdigit() or int(width) < 1:
+            raise ValueError(f"bad part {text!r} of encoding {encoding!r} (expected ENCODING:CHANNELS)")
+        parts.append((enc, int(width)))
+    if len(parts) > MAX_PARTS:
+        raise ValueError(f"encoding {encoding!r} has {len(parts)} parts, more than {MAX_PARTS}")
+    return parts
+
+
+def encode_array(values: np.ndarray, encoding: str, blob) -> dict:
+    """The header's array entry for `values` (N, ...) written with `encoding` (see save); blob(bytes)
+    stores a payload in the data section and returns its blob entry."""
+    x = _channels(np.asarray(values, np.float32))
+    head = {"shape": list(values.shape)}
+    parts = encoding_parts(encoding)
+    if parts is not None:
+        if sum(w for _, w in parts) != x.shape[1]:
+            raise ValueError(f"encoding {encoding!r} covers {sum(w for _, w in parts)} of {x.shape[1]} channels")
+        starts = np.cumsum([0] + [w for _, w in parts])
+        return {**head, "encoding": "parts",
+                "parts": [encode_array(x[:, a:b], enc, blob) for (enc, _), a, b in zip(parts, starts, starts[1:])]}
+    if encoding.startswith("vq"):
+        if not np.all(np.isfinite(x)):
+            raise ValueError("non-finite values cannot be written")
+        rows, index = np.unique(x, axis=0, return_inverse=True)
+        if len(rows) > MAX_CODEBOOK:
+            raise ValueError(f"vq: {len(rows)} distinct values, more than a codebook's {MAX_CODEBOOK} rows "
+                             "(cluster them first, as stg_train.convert.compress does)")
+        if len(rows) == 0:  # no Gaussians: a codebook of one row of zeros
+            rows = np.zeros((1, x.shape[1]), np.float32)
+        dtype = np.dtype("u1") if len(rows) <= 256 else np.dtype("<u2")
+        return {**head, "encoding": "vq", "codebook": encode_array(rows, encoding[3:] or "f32", blob),
+                "data": blob(index.reshape(-1).astype(dtype).tobytes())}
+    stored, params = quantize(values, DELTA.get(encoding, encoding))
+    if encoding in DELTA:  # channel-major, each value minus the one before it (modulo 2^bits)
+        stored = np.ascontiguousarray(_channels(stored).T)
+        stored[:, 1:] -= stored[:, :-1].copy()
+        stored = stored.reshape(-1).view(np.uint8).reshape(-1, stored.itemsize).T  # byte planes, low first
+    return {**head, "encoding": encoding, **params, "data": blob(stored.tobytes())}
 
 
 def dumps(model: Model, encodings: dict[str, str] | None = None, codec: str = "zlib", level: int = 6,
@@ -157,12 +216,17 @@ def dumps(model: Model, encodings: dict[str, str] | None = None, codec: str = "z
     unknown = set(encodings) - set(ATTRIBUTES)
     if unknown:
         raise ValueError(f"encodings: unknown attributes {sorted(unknown)}")
+    for name, encoding in encodings.items():
+        try:
+            encoding_parts(encoding)
+        except ValueError as e:
+            raise ValueError(f"encodings: attribute {name!r}: {e}") from None
     if codec not in CODECS:
         raise ValueError(f"unknown codec {codec!r} (expected one of {CODECS})")
     model.validate()
     data = bytearray()
 
-    def blob(payload: bytes, blob_codec: str) -> dict:
+    def blob(payload: bytes, blob_codec: str = codec) -> dict:
         data.extend(bytes(-len(data) % ALIGN))
         payload = zlib.compress(payload, level) if blob_codec == "zlib" else payload
         entry = {"offset": len(data), "length": len(payload), "codec": blob_codec}
@@ -174,13 +238,10 @@ def dumps(model: Model, encodings: dict[str, str] | None = None, codec: str = "z
         seg.validate()
         attributes = {}
         for name, values in seg.arrays().items():
-            encoding = encodings.get(name, "f32")
             try:
-                stored, params = quantize(values, encoding)
+                attributes[name] = encode_array(values, encodings.get(name, "f32"), blob)
             except ValueError as e:
                 raise ValueError(f"segment {i}, attribute {name!r}: {e}") from None
-            attributes[name] = {"shape": list(values.shape), "encoding": encoding, **params,
-                                "data": blob(stored.tobytes(), codec)}
         decoder = None if seg.decoder is None else {"activation": seg.activation,
                                                     "data": blob(bytes(seg.decoder), "raw")}
         entry = {"start_frame": seg.start_frame, "num_frames": seg.num_frames, "count": seg.count,
@@ -202,7 +263,7 @@ def dumps(model: Model, encodings: dict[str, str] | None = None, codec: str = "z
               "cameras": [c.to_dict() for c in model.cameras], "bounds": bounds, "provenance": provenance}
     text = _json(header).encode("utf-8")
     text += b" " * (-(PREFIX.size + len(text)) % ALIGN)  # the data section starts 8-byte aligned
-    version = written_version(model.kind, [c.model for c in model.cameras], model.segments)
+    version = written_version(model.kind, [c.model for c in model.cameras], model.segments, encodings.values())
     body = PREFIX.pack(MAGIC, *version, len(text)) + text + bytes(data)
     return body + hashlib.sha256(body).digest()
 
@@ -224,8 +285,12 @@ def save(model: Model, path, encodings: dict[str, str] | None = None, codec: str
          provenance: dict | None = None) -> None:
     """Write `model` to `path` atomically (temporary file in the same directory, fsync, rename).
 
-    encodings: attribute name -> "f32" (default), "f16", "u8" or "u16". codec: "zlib" (level 0-9) or
-    "raw" for the attribute blobs; the decoder is always stored raw. provenance overrides
+    encodings: attribute name -> "f32" (default), "f16", "u8" or "u16"; (1.4) "u8-delta", "u16-delta"
+    (u8 / u16 stored as differences, for sorted values); "vq/ENC": a codebook of the attribute's
+    distinct rows (at most 65536; stored in ENC, one of those six, "vq" = "vq/f32")
+    and an index per Gaussian; or parts "ENC:CHANNELS+ENC:CHANNELS...", consecutive channels each in
+    one of the encodings above (e.g. "u16:3+vq/u8:9" for position coefficient 0 and the motion).
+    codec: "zlib" (level 0-9) or "raw" for the attribute blobs; the decoder is always stored raw. provenance overrides
     model.provenance. Raises ValueError (naming the attribute) for values the encoding cannot hold;
     on any error nothing is left at a new path.
     """
@@ -338,8 +403,9 @@ def _camera(camera: Camera, limits: Limits) -> Camera:
 
 
 def _layout(s, where: str, kind: str, limits: Limits) -> tuple:
-    """(start_frame, num_frames, count, position_degree, rotation_degree, channels) of a segment entry,
-    checked against `limits` before any of its data is read."""
+    """(start_frame, num_frames, count, position_degree, rotation_degree, channels, extra) of a segment
+    entry, checked against `limits` before any of its data is read; extra: the float32 values its
+    arrays' codebooks take (1.4)."""
     if not isinstance(s, dict):
         raise ValueError(f"{where}: not a JSON object")
     start, frames, count, pdeg, qdeg = (_get(s, k, int, where) for k in
@@ -358,13 +424,16 @@ def _layout(s, where: str, kind: str, limits: Limits) -> tuple:
         if name not in attributes:
             raise ValueError(f"{where}: missing attribute {name!r}")
     channels = _feature_channels(attributes["features"], kind, f"{where}, attribute 'features'")
-    return start, frames, count, pdeg, qdeg, channels
+    extra = sum(_plan(attributes[name], attribute_shape(name, count, pdeg, qdeg, channels),
+                      f"{where}, attribute {name!r}") for name in ATTRIBUTES)
+    return start, frames, count, pdeg, qdeg, channels, extra
 
 
 def _check_sizes(layouts: list, file_size: int, limits: Limits) -> None:
     """Refuse files whose arrays would decode to more than the limits allow (before decoding any)."""
     values = sum(math.prod(attribute_shape(name, count, pdeg, qdeg, channels))
-                 for _, _, count, pdeg, qdeg, channels in layouts for name in ATTRIBUTES)
+                 for _, _, count, pdeg, qdeg, channels, _ in layouts for name in ATTRIBUTES)
+    values += sum(layout[-1] for layout in layouts)  # codebooks
     allowed = limits.max_expansion * file_size + limits.expansion_allowance
     if 4 * values > allowed:
         raise ValueError(f"the arrays would take {4 * values} bytes in memory, more than the reader allows for a "
@@ -372,7 +441,7 @@ def _check_sizes(layouts: list, file_size: int, limits: Limits) -> None:
 
 
 def _segment(s: dict, where: str, layout: tuple, section: memoryview) -> Segment:
-    start, frames, count, pdeg, qdeg, channels = layout
+    start, frames, count, pdeg, qdeg, channels, _ = layout
     attributes = s["attributes"]
     arrays = {}
     for name in ATTRIBUTES:
@@ -417,24 +486,92 @@ def _feature_channels(spec, kind: str, where: str) -> int:
     return shape[1]
 
 
-def _array(spec, shape: tuple, section: memoryview, where: str) -> np.ndarray:
-    """An array entry {"shape", "encoding", ["offset", "scale"], "data": blob} -> float32 array of `shape`."""
+def _plan(spec, shape: tuple, where: str, inside: str = "") -> int:
+    """Check an array entry's structure against `shape` before any of it is decoded: its shape, its
+    encoding, (1.4) a "vq" codebook's shape and a "parts" entry's parts. Returns the float32 values the
+    decoding takes beyond the array itself (codebooks). inside: "codebook" or "part" for a nested entry."""
     if not isinstance(spec, dict):
         raise ValueError(f"{where}: not a JSON object")
     if _get(spec, "shape", list, where) != list(shape):
         raise ValueError(f"{where}: shape {spec['shape']} disagrees with count and degrees, expected {list(shape)}")
     encoding = _get(spec, "encoding", str, where)
-    if encoding not in ENCODINGS:
-        raise ValueError(f"{where}: unknown encoding {encoding!r}")
-    size = math.prod(shape) * ENCODINGS[encoding].itemsize
-    stored = np.frombuffer(_blob(_get(spec, "data", dict, where), section, size, where), ENCODINGS[encoding])
-    try:
-        values = dequantize(stored.reshape(shape), encoding, spec)
-    except (ValueError, TypeError) as e:
-        raise ValueError(f"{where}: {e}") from e
+    channels = math.prod(shape[1:])
+    if encoding in PLAIN:
+        return 0
+    if encoding == "vq" and inside != "codebook":
+        book = _get(spec, "codebook", dict, where)
+        rows = book["shape"][0] if isinstance(book.get("shape"), list) and book["shape"] else None
+        if type(rows) is not int or not 1 <= rows <= MAX_CODEBOOK:
+            raise ValueError(f"{where}: a codebook's shape must be [K, {channels}] with K in [1, {MAX_CODEBOOK}], "
+                             f"got {book.get('shape')}")
+        _plan(book, (rows, channels), f"{where}, codebook", "codebook")
+        return rows * channels
+    if encoding == "parts" and not inside:
+        parts = _get(spec, "parts", list, where)
+        if not 1 <= len(parts) <= MAX_PARTS:
+            raise ValueError(f"{where}: {len(parts)} parts, expected 1 to {MAX_PARTS}")
+        extra, covered = 0, 0
+        for j, part in enumerate(parts):
+            width = part.get("shape") if isinstance(part, dict) else None
+            width = width[1] if isinstance(width, list) and len(width) == 2 else None
+            if type(width) is not int or width < 1:
+                raise ValueError(f"{where}, part {j}: shape must be [{shape[0]}, channels >= 1]")
+            covered += width
+            if covered > channels:
+                break
+            extra += _plan(part, (shape[0], width), f"{where}, part {j}", "part")
+        if covered != channels:
+            raise ValueError(f"{where}: the parts cover {covered} channels, the array has {channels}")
+        return extra
+    raise ValueError(f"{where}: unknown encoding {encoding!r}" + (f" (not allowed in a {inside})" if inside else ""))
+
+
+def _array(spec, shape: tuple, section: memoryview, where: str) -> np.ndarray:
+    """An array entry {"shape", "encoding", ...} (checked by _plan) -> float32 array of `shape`."""
+    values = _values(spec, shape, section, where)
     if not np.all(np.isfinite(values)):
         raise ValueError(f"{where}: decoded values are not all finite")
     return values
+
+
+def _values(spec: dict, shape: tuple, section: memoryview, where: str) -> np.ndarray:
+    encoding, channels = spec["encoding"], math.prod(shape[1:])
+    if encoding == "parts":  # (1.4) consecutive channels, each part decoded into its place
+        out, at = np.empty((shape[0], channels), np.float32), 0
+        for j, part in enumerate(spec["parts"]):
+            width = part["shape"][1]
+            out[:, at:at + width] = _values(part, (shape[0], width), section, f"{where}, part {j}")
+            at += width
+        return out.reshape(shape)
+    if encoding == "vq":  # (1.4) codebook rows picked by an index per value
+        rows = spec["codebook"]["shape"][0]
+        book = _values(spec["codebook"], (rows, channels), section, f"{where}, codebook")
+        dtype = np.dtype("u1") if rows <= 256 else np.dtype("<u2")
+        index = np.frombuffer(_blob(_get(spec, "data", dict, where), section, shape[0] * dtype.itemsize, where), dtype)
+        if index.size and int(index.max()) >= rows:
+            raise ValueError(f"{where}: index {int(index.max())} beyond the codebook's {rows} rows")
+        return book[index].reshape(shape)
+    base = DELTA.get(encoding, encoding)
+    size = math.prod(shape) * ENCODINGS[base].itemsize
+    stored = np.frombuffer(_blob(_get(spec, "data", dict, where), section, size, where), ENCODINGS[base])
+    if encoding in DELTA:  # (1.4) byte planes of differences -> running sums (modulo 2^bits) per channel
+        planes = np.frombuffer(stored.tobytes(), np.uint8).reshape(stored.itemsize, -1)
+        stored = np.ascontiguousarray(planes.T).view(stored.dtype).reshape(channels, shape[0])
+        stored = np.cumsum(stored, axis=1, dtype=stored.dtype).T
+    try:
+        return dequantize(stored.reshape(shape), base, spec)
+    except (ValueError, TypeError) as e:
+        raise ValueError(f"{where}: {e}") from e
+
+
+def encoding_of(spec: dict) -> str:
+    """The writer's encoding string (see save) of a valid file's array entry: "u16", "vq/u8",
+    "u16:3+vq/u8:9", ..."""
+    if spec["encoding"] == "parts":
+        return "+".join(f"{encoding_of(p)}:{p['shape'][1]}" for p in spec["parts"])
+    if spec["encoding"] == "vq":
+        return "vq/" + spec["codebook"]["encoding"]
+    return spec["encoding"]
 
 
 def _blob(spec: dict, section: memoryview, size: int | None, where: str):

@@ -41,6 +41,7 @@ ROOT = Path(__file__).resolve().parent.parent
 POOL = [None, True, False, 0, 1, -1, 2, 3, 7, 255, 256, 65535, 2 ** 31 - 1, 2 ** 31, 2 ** 32, 2 ** 53, 2 ** 63 - 1,
         2 ** 63, 2 ** 64, 10 ** 20, -10 ** 20, 0.5, -0.0, 1e-300, 5e-324, 1e300, 1.7e308, math.nan, math.inf,
         -math.inf, "", "f16", "f32", "u8", "u16", "zlib", "raw", "x" * 1000, "full", "lite", "sh", "clamp", [],
+        "vq", "parts", "u8-delta", "u16-delta", 65536, 65537, [65536, 9], {"shape": [1, 1], "encoding": "f32"},
         [0], [1] * 17, [1e300] * 3, {}, {"offset": 0, "length": 0, "codec": "raw"}]
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import copy
 import json
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -160,6 +161,46 @@ def _zlib_bomb() -> bytes:
     return stg_format.dumps(Model("lite", 30.0, [segment]), level=9)
 
 
+COMPACT = {"features": "vq/f32", "position": "u16-delta:3+vq/f16:9", "opacity": "u8-delta"}
+
+
+def _compact(edit=None, section_edit=None) -> bytes:
+    """(1.4) The base model with vq, parts and delta arrays (raw blobs), `edit(header)` and
+    `section_edit(header, section) -> section` applied."""
+    header, section, _ = split(stg_format.dumps(stg_format.loads(_base()), COMPACT, codec="raw"))
+    if edit:
+        edit(header)
+    if section_edit:
+        section = section_edit(header, section)
+    return seal(header, section, (1, 4))
+
+
+def _features(header):
+    return header["segments"][0]["attributes"]["features"]
+
+
+def _poke(spec, values: bytes):
+    """A section edit: `values` written at the start of blob `spec(header)`."""
+    def edit(header, section):
+        at = spec(header)["data"]["offset"]
+        return section[:at] + values + section[at + len(values):]
+    return edit
+
+
+def _codebook_bomb() -> bytes:
+    """64 segments whose features index one shared, zlib-compressed codebook of 65536 rows of zeros:
+    64 x 65536 x 9 float32 (151 MB) from a file of a few KB."""
+    header, section, _ = split(stg_format.dumps(stg_format.loads(_base()), COMPACT, codec="raw"))
+    zeros = zlib.compress(bytes(65536 * 9 * 4), 9)
+    book = {"shape": [65536, 9], "encoding": "f32", "data": {"offset": len(section), "length": len(zeros),
+                                                             "codec": "zlib"}}
+    first = header["segments"][0]
+    first["attributes"]["features"]["codebook"] = book
+    header["segments"] = [dict(copy.deepcopy(first), start_frame=4 * k) for k in range(64)]
+    header["num_frames"] = 4 * 64
+    return seal(header, section + zeros, (1, 4))
+
+
 def _set_count(header, count):
     s = header["segments"][0]
     s["count"] = count
@@ -221,6 +262,24 @@ def stg_fixtures() -> dict[str, tuple[bytes, dict]]:
         "crossfade_at_the_limit.stg": (_segmented(lambda s: (s[0].update(context_frames=[0, 4]),
                                                              s[1].update(context_frames=[4, 0], crossfade_frames=8))),
                                        loads),
+        # format 1.4: differences, codebooks and parts (formats/stg-v1.md, "Deltas, codebooks and parts")
+        "compact_arrays.stg": (_compact(), loads),
+        "vq_index_beyond_codebook.stg": (_compact(section_edit=_poke(_features, bytes([20]))),
+                                         refused("attribute 'features': index 20 beyond the codebook's 20 rows")),
+        "vq_codebook_65537_rows.stg": (_compact(lambda h: _features(h)["codebook"].update(shape=[65537, 9])),
+                                       refused(r"codebook's shape must be \[K, 9\] with K in \[1, 65536\]")),
+        "vq_codebook_nan.stg": (_compact(section_edit=_poke(lambda h: _features(h)["codebook"],
+                                                            np.float32([np.nan]).tobytes())),
+                                refused("attribute 'features': decoded values are not all finite")),
+        "vq_in_a_codebook.stg": (_compact(lambda h: _features(h)["codebook"].update(
+            encoding="vq", codebook={"shape": [1, 9], "encoding": "f32", "data": {"offset": 0, "length": 36,
+                                                                                  "codec": "raw"}})),
+            refused("codebook: unknown encoding 'vq' \\(not allowed in a codebook\\)")),
+        "parts_in_a_part.stg": (_compact(lambda h: h["segments"][0]["attributes"]["position"]["parts"][0].update(
+            encoding="parts", parts=[])), refused("part 0: unknown encoding 'parts' \\(not allowed in a part\\)")),
+        "parts_cover_too_few.stg": (_compact(lambda h: h["segments"][0]["attributes"]["position"]["parts"].pop()),
+                                    refused("the parts cover 3 channels, the array has 12")),
+        "codebook_bomb.stg": (_codebook_bomb(), refused("would take .* bytes in memory")),
     }
 
 

@@ -93,6 +93,28 @@ def expected_render(model: Model, camera: Camera, t: float, weights) -> np.ndarr
     return _segment_render(model, model.segments[index], camera, t, weights)
 
 
+def _compact(full: Model) -> tuple[Model, dict]:
+    """(1.4) The full model with its motion, rotations, last two scale channels and last six features
+    drawn from small tables (so that codebooks hold them), and encodings that use every encoding of 1.4:
+    differences of u8 and u16, vq with codebooks of every plain encoding, parts of plain and vq arrays."""
+    rng = np.random.default_rng(2028)
+    seg = full.segments[0]
+    n = seg.count
+    pick = lambda table: table[rng.integers(len(table), size=n)]  # noqa: E731
+    position = seg.position.copy()
+    position[:, 1:] = pick(0.3 * rng.standard_normal((6, 3, 3)))
+    scale = seg.scale.copy()
+    scale[:, 1:] = pick(rng.uniform(0.05, 0.4, (5, 2)))
+    features = seg.features.copy()
+    features[:, 3:] = pick(rng.standard_normal((7, 6)))
+    compact = replace(seg, position=position, rotation=pick(np.concatenate(
+        [rng.standard_normal((8, 1, 4)), 0.5 * rng.standard_normal((8, 1, 4))], 1)), scale=scale, features=features)
+    encodings = {"opacity": "u8-delta", "t_center": "u16-delta", "t_scale": "f16",
+                 "position": "u16-delta:3+vq/f16:9", "rotation": "vq/u16", "scale": "u8:1+vq/f32:2",
+                 "features": "u8:3+vq/u8-delta:6"}
+    return Model("full", FPS, [compact], cameras=full.cameras, bounds=full.bounds, provenance=full.provenance), encodings
+
+
 def main() -> None:
     rng = np.random.default_rng(2024)
     cam = _camera()
@@ -116,9 +138,10 @@ def main() -> None:
     crossfade = Model("full", FPS, [replace(first, context_frames=(0, 2)),
                                     replace(second, context_frames=(2, 0), crossfade_frames=4)],
                       cameras=[cam], bounds=full.bounds, provenance=full.provenance)
+    compact, compact_encodings = _compact(full)
     vectors = [("lite", lite, {}, weights), ("full", full, {}, weights), ("full_quantized", full, quantized, weights),
                ("sh", sh, {}, weights), ("full_fisheye", fisheye, {}, weights),
-               ("full_crossfade", crossfade, {}, fade_weights)]
+               ("full_crossfade", crossfade, {}, fade_weights), ("full_compact", compact, compact_encodings, weights)]
     index = {}
     for name, model, encodings, model_weights in vectors:
         times = [0.0, 0.3, 0.45, 0.62, 0.95] if name == "full_crossfade" else [0.0, 0.25, 0.62, 0.95]

@@ -21,7 +21,7 @@ import { readMlp } from "./onnx-mlp.js";
 import { sha256 } from "./sha256.js";
 
 export const MAGIC = [0x89, 0x53, 0x54, 0x47, 0x0d, 0x0a, 0x1a, 0x0a];
-export const VERSION = [1, 3];
+export const VERSION = [1, 4];
 export const PREFIX_SIZE = 20;
 export const MAX_HEADER = 64 * 2 ** 20;
 export const KINDS = ["lite", "full", "sh"];
@@ -29,8 +29,10 @@ export const ACTIVATIONS = ["sigmoid", "clamp", "identity"];
 export const ATTRIBUTES = ["opacity", "t_center", "t_scale", "position", "rotation", "scale", "features"];
 export const SH_CHANNELS = [3, 12, 27, 48];
 export const MAX_SPAN = 2 ** 24;  // the largest context_frames / crossfade_frames value a reader accepts (1.3)
-const BYTES = { f32: 4, f16: 2, u8: 1, u16: 2 };
+const BYTES = { f32: 4, f16: 2, u8: 1, u16: 2, "u8-delta": 1, "u16-delta": 2 };  // the plain encodings
 const CODECS = ["raw", "zlib"];
+export const MAX_CODEBOOK = 2 ** 16;  // rows of a "vq" codebook (1.4)
+export const MAX_PARTS = 64;  // parts of a "parts" array (1.4)
 
 /** The reader's defaults, those of stg_runtime.format.Limits (formats/stg-v1.md, "Limits"). */
 export const DEFAULT_LIMITS = Object.freeze({
@@ -125,6 +127,10 @@ function layout(s, where, kind, limits) {
   const attributes = get(s, "attributes", "dict", where);
   for (const name of ATTRIBUTES) if (!(name in attributes)) fail(`${where}: missing attribute '${name}'`);
   const channels = featureChannels(attributes.features, kind, `${where}, attribute 'features'`);
+  let extra = 0;  // codebooks' values (1.4)
+  for (const name of ATTRIBUTES) {
+    extra += plan(attributes[name], attributeShape(name, count, pdeg, qdeg, channels), `${where}, attribute '${name}'`);
+  }
   const span = (v) => Number.isInteger(v) && v >= 0 && v <= MAX_SPAN;  // (true, 1.5, "2": not integers)
   const context = "context_frames" in s ? s.context_frames : [0, 0];
   if (!(Array.isArray(context) && context.length === 2 && context.every(span))) {
@@ -133,7 +139,7 @@ function layout(s, where, kind, limits) {
   const crossfade = "crossfade_frames" in s ? s.crossfade_frames : 0;
   if (!span(crossfade)) fail(`${where}: crossfade_frames must be an integer in [0, ${MAX_SPAN}]`);
   return { startFrame: start, numFrames: frames, count, positionDegree: pdeg, rotationDegree: qdeg, channels,
-    contextFrames: context.slice(), crossfadeFrames: crossfade };
+    contextFrames: context.slice(), crossfadeFrames: crossfade, extra };
 }
 
 function camera(c, limits) {
@@ -222,6 +228,7 @@ export function parseHeader(headerBytes, fileSize, name, limits = DEFAULT_LIMITS
     let values = 0;
     for (const s of segments) {
       for (const a of ATTRIBUTES) values += attributeShape(a, s.count, s.positionDegree, s.rotationDegree, s.channels).reduce((x, y) => x * y, 1);
+      values += s.extra;
     }
     const allowed = limits.maxExpansion * fileSize + limits.expansionAllowance;
     if (4 * values > allowed) {
@@ -342,20 +349,62 @@ function numbers(list, channels) {
   return list.map(Math.fround);
 }
 
-async function array(spec, shape, section, where) {
-  if (spec === null || typeof spec !== "object" || Array.isArray(spec)) fail(`${where}: not a JSON object`);
+const isObject = (v) => v !== null && typeof v === "object" && !Array.isArray(v);
+const sameShape = (a, b) => a.length === b.length && a.every((v, i) => v === b[i]);
+
+/** Check an array entry's structure against `shape` before any of it is decoded (format.py _plan): its
+ * shape, its encoding, (1.4) a "vq" codebook's shape and a "parts" entry's parts. Returns the float32
+ * values its decoding takes beyond the array itself (codebooks). inside: "codebook" or "part". */
+function plan(spec, shape, where, inside = "") {
+  if (!isObject(spec)) fail(`${where}: not a JSON object`);
   const declared = get(spec, "shape", "list", where);
-  if (declared.length !== shape.length || declared.some((v, i) => v !== shape[i])) {
+  if (!sameShape(declared, shape)) {
     fail(`${where}: shape ${JSON.stringify(declared)} disagrees with count and degrees, expected ${JSON.stringify(shape)}`);
   }
   const encoding = get(spec, "encoding", "str", where);
-  if (!(encoding in BYTES)) fail(`${where}: unknown encoding '${encoding}'`);
-  const n = shape.reduce((a, b) => a * b, 1), channels = shape.slice(1).reduce((a, b) => a * b, 1);
+  const channels = shape.slice(1).reduce((a, b) => a * b, 1);
+  if (Object.hasOwn(BYTES, encoding)) return 0;
+  if (encoding === "vq" && inside !== "codebook") {
+    const book = get(spec, "codebook", "dict", where);
+    const rows = Array.isArray(book.shape) && book.shape.length ? book.shape[0] : null;
+    if (!(Number.isInteger(rows) && rows >= 1 && rows <= MAX_CODEBOOK)) {
+      fail(`${where}: a codebook's shape must be [K, ${channels}] with K in [1, ${MAX_CODEBOOK}], `
+        + `got ${JSON.stringify(book.shape ?? null)}`);
+    }
+    plan(book, [rows, channels], `${where}, codebook`, "codebook");
+    return rows * channels;
+  }
+  if (encoding === "parts" && !inside) {
+    const parts = get(spec, "parts", "list", where);
+    if (!(parts.length >= 1 && parts.length <= MAX_PARTS)) {
+      fail(`${where}: ${parts.length} parts, expected 1 to ${MAX_PARTS}`);
+    }
+    let extra = 0, covered = 0;
+    for (let j = 0; j < parts.length; j++) {
+      const part = parts[j];
+      const width = isObject(part) && Array.isArray(part.shape) && part.shape.length === 2 ? part.shape[1] : null;
+      if (!(Number.isInteger(width) && width >= 1)) {
+        fail(`${where}, part ${j}: shape must be [${shape[0]}, channels >= 1]`);
+      }
+      covered += width;
+      if (covered > channels) break;
+      extra += plan(part, [shape[0], width], `${where}, part ${j}`, "part");
+    }
+    if (covered !== channels) fail(`${where}: the parts cover ${covered} channels, the array has ${channels}`);
+    return extra;
+  }
+  return fail(`${where}: unknown encoding '${encoding}'${inside ? ` (not allowed in a ${inside})` : ""}`);
+}
+
+/** Values of a plain array entry (checked by plan): Float32Array of count x channels, C-order. */
+async function plainValues(spec, count, channels, section, where) {
+  const encoding = spec.encoding, n = count * channels;
   let offset = null, scale = null;
-  if (encoding === "u8" || encoding === "u16") {  // checked before the blob is decoded
+  const base = encoding.replace("-delta", "");
+  if (base === "u8" || base === "u16") {  // checked before the blob is decoded
     offset = numbers(spec.offset, channels);
     scale = numbers(spec.scale, channels);
-    if (!offset || !scale) fail(`${where}: ${encoding} needs lists 'offset' and 'scale' of ${channels} numbers`);
+    if (!offset || !scale) fail(`${where}: ${base} needs lists 'offset' and 'scale' of ${channels} numbers`);
   }
   const raw = await blob(get(spec, "data", "dict", where), section, n * BYTES[encoding], where);
   const view = new DataView(raw.buffer, raw.byteOffset, raw.byteLength);
@@ -363,8 +412,60 @@ async function array(spec, shape, section, where) {
   if (encoding === "f32") for (let i = 0; i < n; i++) out[i] = view.getFloat32(4 * i, true);
   else if (encoding === "f16") for (let i = 0; i < n; i++) out[i] = HALF[view.getUint16(2 * i, true)];
   else if (encoding === "u8") for (let i = 0; i < n; i++) out[i] = offset[i % channels] + scale[i % channels] * raw[i];
-  else for (let i = 0; i < n; i++) out[i] = offset[i % channels] + scale[i % channels] * view.getUint16(2 * i, true);
-  for (let i = 0; i < n; i++) if (!Number.isFinite(out[i])) fail(`${where}: decoded values are not all finite`);
+  else if (encoding === "u16") {
+    for (let i = 0; i < n; i++) out[i] = offset[i % channels] + scale[i % channels] * view.getUint16(2 * i, true);
+  } else {  // (1.4) channel-major differences modulo 2^bits (u16: a plane of low bytes, then of high): running sums
+    const wide = base === "u16", mask = wide ? 0xffff : 0xff;
+    for (let c = 0; c < channels; c++) {
+      let q = 0;
+      for (let i = 0; i < count; i++) {
+        const k = c * count + i;
+        q = (q + (wide ? raw[k] | (raw[n + k] << 8) : raw[k])) & mask;
+        out[i * channels + c] = offset[c] + scale[c] * q;
+      }
+    }
+  }
+  return out;
+}
+
+/** Values of an array entry (checked by plan) of `count` rows of `channels`: Float32Array, C-order. */
+async function values(spec, count, channels, section, where) {
+  if (spec.encoding === "parts") {  // (1.4) consecutive channels, each part decoded into its place
+    const out = new Float32Array(count * channels);
+    let at = 0;
+    for (let j = 0; j < spec.parts.length; j++) {
+      const width = spec.parts[j].shape[1];
+      const part = await values(spec.parts[j], count, width, section, `${where}, part ${j}`);
+      for (let i = 0; i < count; i++) out.set(part.subarray(i * width, (i + 1) * width), i * channels + at);
+      at += width;
+    }
+    return out;
+  }
+  if (spec.encoding === "vq") {  // (1.4) codebook rows picked by an index per value
+    const rows = spec.codebook.shape[0];
+    const book = await values(spec.codebook, rows, channels, section, `${where}, codebook`);
+    const size = rows <= 256 ? 1 : 2;
+    const raw = await blob(get(spec, "data", "dict", where), section, count * size, where);
+    const view = new DataView(raw.buffer, raw.byteOffset, raw.byteLength);
+    const out = new Float32Array(count * channels);
+    let worst = -1;
+    for (let i = 0; i < count; i++) worst = Math.max(worst, size === 1 ? raw[i] : view.getUint16(2 * i, true));
+    if (worst >= rows) fail(`${where}: index ${worst} beyond the codebook's ${rows} rows`);
+    for (let i = 0; i < count; i++) {
+      const r = size === 1 ? raw[i] : view.getUint16(2 * i, true);
+      out.set(book.subarray(r * channels, (r + 1) * channels), i * channels);
+    }
+    return out;
+  }
+  return plainValues(spec, count, channels, section, where);
+}
+
+async function array(spec, shape, section, where) {
+  const count = shape[0], channels = shape.slice(1).reduce((a, b) => a * b, 1);
+  const out = await values(spec, count, channels, section, where);
+  for (let i = 0; i < out.length; i++) {
+    if (!Number.isFinite(out[i])) fail(`${where}: decoded values are not all finite`);
+  }
   return out;
 }
 

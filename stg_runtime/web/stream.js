@@ -33,7 +33,13 @@ function blobsOf(entry) {  // [offset, end) of every blob a segment entry names 
       out.push([blob.offset, blob.offset + blob.length]);
     }
   };
-  for (const a of Object.values(entry.attributes || {})) add(a && a.data);
+  const walk = (a) => {  // an array's blob, its codebook's and its parts' (format 1.4)
+    if (!a || typeof a !== "object") return;
+    add(a.data);
+    walk(a.codebook);
+    if (Array.isArray(a.parts)) a.parts.forEach(walk);
+  };
+  Object.values(entry.attributes || {}).forEach(walk);
   if (entry.decoder) add(entry.decoder.data);
   return out;
 }

@@ -17,7 +17,7 @@ from .common import Parser, error, finite_float, nonnegative_int, positive_float
 
 #: The compression presets (stg_train.convert.compress.PRESETS, checked by tests/cli), named here so that
 #: --help does not import the compressor.
-PRESET_NAMES = ("lossless", "balanced", "small")
+PRESET_NAMES = ("lossless", "balanced", "small", "web")
 
 PROG = "stg-convert"
 
@@ -46,6 +46,9 @@ COMPRESS_EPILOG = """presets (the options below override them):
             opacity stays below 1/255 (never drawn) or that no camera of the file sees, Morton order,
             per attribute the cheapest encoding (u8, u16, f16, f32) within the error budget
   small     target: <= 1/8 of the float32 file, <= 0.5 dB loss; also drops peak opacity < 0.01
+  web       <= 0.3 dB loss, the smallest file (format 1.4: readers of 1.3 and older refuse it): as
+            small, also drops the least important Gaussians within part of the budget, each channel
+            group in its own container, stored as differences where that is smaller
 
 The error budget is measured by rendering: the file's cameras at the first, middle and last frame of
 each segment, or with --data the dataset's held-out camera against its ground truth. The report lists

@@ -19,6 +19,13 @@ one SH band, or the whole attribute) gets a number of bits; the integers are rou
 the renders of a few views (the file's cameras at a few frames, or a dataset's held-out camera) must
 stay within the PSNR loss the preset allows (errors against the uncompressed render add to the
 model's own error against the ground truth, measured with a dataset or assumed).
+
+The `web` preset uses format 1.4 (formats/stg-v1.md, "Deltas, codebooks and parts"): each channel
+group is a part in its own container (u8 up to 8 bits, else u16), stored as differences where zlib
+makes that smaller (the Morton-ordered centres), and a group may become one constant (0 bits: its
+mean). It also drops the least important Gaussians (peak opacity x footprint area x time drawn),
+the largest of PRUNE_FRACTIONS that costs at most PRUNE_SHARE of the budget, and once the predicted
+allocation fits it lowers groups one measured step at a time while the whole stays within budget.
 """
 from __future__ import annotations
 
@@ -44,7 +51,9 @@ class Preset:
     assumed when no dataset gives it (the budget on the error against the uncompressed render follows
     from both); prune_opacity: peak-opacity threshold (None: no pruning); prune_unseen: drop Gaussians
     no camera sees; order: "morton" or None; level: zlib level; encodings: fixed encodings (None:
-    measured within the budget)."""
+    measured within the budget); compact: use format 1.4 (each channel group its own container, stored
+    as differences where deflate makes that smaller, a group may become one constant, and the least
+    important Gaussians are pruned within part of the budget; see prune_least_important)."""
 
     max_loss_db: float
     assumed_psnr: float = 33.0
@@ -53,6 +62,7 @@ class Preset:
     order: str | None = "morton"
     level: int = 9
     encodings: dict | None = None
+    compact: bool = False
 
 
 #: The search aims at this fraction of a preset's PSNR loss: a margin for the views it does not render.
@@ -63,7 +73,14 @@ PRESETS = {
                        encodings={name: "f32" for name in ATTRIBUTES}),
     "balanced": Preset(0.1),
     "small": Preset(0.5, prune_opacity=0.01),
+    # without ground truth, a 38 dB model assumed: at 33 dB the demo's 36 dB model lost 0.35 dB
+    "web": Preset(0.3, assumed_psnr=38.0, prune_opacity=0.01, compact=True),
 }
+
+#: Compact presets prune the least important Gaussians, at most these fractions (largest first), when
+#: that costs at most PRUNE_SHARE of the error budget.
+PRUNE_FRACTIONS = (0.3, 0.2, 0.1)
+PRUNE_SHARE = 0.3
 
 
 @dataclass
@@ -80,6 +97,7 @@ class Settings:
     order: str | None
     removed_opacity: int = 0
     removed_unseen: int = 0
+    removed_importance: int = 0
     budget_mse: float | None = None
     measured_mse: float | None = None
     search: list = field(default_factory=list)
@@ -92,7 +110,8 @@ class Settings:
     def provenance(self) -> dict:
         return {"preset": self.preset, "encodings": self.encodings, "bits": self.bits, "level": self.level,
                 "prune_opacity": self.prune_opacity, "prune_unseen": self.prune_unseen, "order": self.order,
-                "removed": {"opacity": self.removed_opacity, "unseen": self.removed_unseen}}
+                "removed": {"opacity": self.removed_opacity, "unseen": self.removed_unseen,
+                            "importance": self.removed_importance}}
 
 
 # -- pruning ---------------------------------------------------------------------------------------
@@ -141,6 +160,27 @@ def seen_mask(segment: Segment, cameras, margin: float = 1.0) -> np.ndarray:
     return seen
 
 
+def importance(segment: Segment) -> np.ndarray:
+    """(N,) float64 a Gaussian's share of the picture, roughly: peak opacity x the area of its
+    footprint (geometric mean scale squared) x the fraction of the segment's time it is drawn (where
+    opacity(tau) >= 1/255, at most 1)."""
+    peak = peak_opacity(segment)
+    t_scale = segment.t_scale.astype(np.float64)
+    half = np.sqrt(np.log(np.maximum(peak / MIN_ALPHA, 1.0)) / np.maximum(t_scale, 1e-12))
+    area = np.exp(2.0 * np.log(segment.scale.astype(np.float64)).mean(axis=1))
+    return peak * area * np.minimum(2.0 * half, 1.0)
+
+
+def prune_least_important(segment: Segment, fraction: float) -> Segment:
+    """The segment without its `fraction` least important Gaussians (see importance), order kept."""
+    drop = int(fraction * segment.count)
+    if drop == 0:
+        return segment
+    keep = np.ones(segment.count, bool)
+    keep[np.argsort(importance(segment), kind="stable")[:drop]] = False
+    return segment.subset(keep)
+
+
 # -- ordering --------------------------------------------------------------------------------------
 
 
@@ -178,6 +218,8 @@ def reorder(segment: Segment) -> Segment:
 #: group of the attribute needs <= 8 bits, else u16, with values snapped to multiples of
 #: 2^(container bits - bits) so that zlib stores the unused low bits almost for free), then float.
 OPTIONS = (1, 2, 3, 4, 5, 6, 7, 8, 10, 12, 14, 16, "f16", "f32")
+#: Compact presets (format 1.4) also have 0 bits: the group's channels become their mean.
+COMPACT_OPTIONS = (0,) + OPTIONS
 
 
 def channel_groups(name: str, segment: Segment, kind: str) -> list[slice]:
@@ -228,11 +270,48 @@ def snapped(values: np.ndarray, choice, groups: list[slice]) -> np.ndarray:
     return stg_format.dequantize(qs.astype(stored.dtype).reshape(values.shape), enc, params)
 
 
+def compact_snapped(values: np.ndarray, choice: list, groups: list[slice]) -> np.ndarray:
+    """`values` (N, ...) as a reader decodes them after writing with a compact choice: one option of
+    COMPACT_OPTIONS per group, each group in its own container (see compact_encoding); 0 bits: the
+    group's channels hold their mean."""
+    x = values.reshape(values.shape[0], -1).copy()
+    for group, option in zip(groups, choice):
+        part = x[:, group]
+        if option == 0:
+            mean = part.mean(axis=0, dtype=np.float64) if len(part) else np.zeros(part.shape[1])
+            x[:, group] = np.broadcast_to(mean.astype(np.float32), part.shape)
+        else:
+            x[:, group] = snapped(part, option if isinstance(option, str) else [option], [slice(0, part.shape[1])])
+    return x.reshape(values.shape)
+
+
+def compact_encoding(values: np.ndarray, choice: list, groups: list[slice], level: int) -> str:
+    """The format 1.4 encoding string of compact-snapped `values` (N, ...) (see format.save): a part
+    per group, "u8" (up to 8 bits) or "u16", as differences ("-delta") where zlib at `level` stores
+    those in fewer bytes, or "f16" / "f32"; a single part is the plain encoding."""
+    x = values.reshape(values.shape[0], -1)
+    parts = []
+    for group, option in zip(groups, choice):
+        enc = option if isinstance(option, str) else container([max(option, 1)])
+        if enc in ("u8", "u16"):
+            sizes = {e: len(zlib.compress(stg_format.encode_array(x[:, group], e, lambda b: b)["data"], level))
+                     for e in (enc, enc + "-delta")}
+            enc = min(sizes, key=lambda e: (sizes[e], e))
+        parts.append((enc, group.stop - group.start))
+    if len(parts) == 1:
+        return parts[0][0]
+    return "+".join(f"{enc}:{width}" for enc, width in parts)
+
+
 def quantized(segment: Segment, choices: dict, kind: str) -> Segment:
     """The segment as a reader sees it after writing it with `choices` (attribute -> OPTIONS choice:
-    "f32", "f16", "u8", "u16" or a list of bits per channel group); others stay as they are."""
+    "f32", "f16", "u8", "u16" or a list of bits per channel group; or ("compact", [option per group])
+    for compact presets); others stay as they are."""
     arrays = segment.arrays()
     for name, choice in choices.items():
+        if isinstance(choice, tuple) and choice[0] == "compact":
+            arrays[name] = compact_snapped(arrays[name], choice[1], channel_groups(name, segment, kind))
+            continue
         if choice in ("u8", "u16"):
             choice = [8 if choice == "u8" else 16] * len(channel_groups(name, segment, kind))
         groups = channel_groups(name, segment, kind)
@@ -253,8 +332,10 @@ def attribute_bytes(model: Model, encodings: dict | None = None, level: int = 6)
     out = {name: 0 for name in ATTRIBUTES}
     for seg in model.segments:
         for name, values in seg.arrays().items():
-            stored, _ = stg_format.quantize(values, encodings.get(name, "f32"))
-            out[name] += len(zlib.compress(stored.tobytes(), level))
+            sizes = []
+            stg_format.encode_array(values, encodings.get(name, "f32"),
+                                    lambda payload: sizes.append(len(zlib.compress(payload, level))))
+            out[name] += sum(sizes)
     return out
 
 
@@ -265,10 +346,14 @@ def file_attribute_bytes(path) -> dict[str, int]:
         prefix = f.read(stg_format.PREFIX.size)
         _, _, _, length = stg_format.PREFIX.unpack(prefix)
         header = json.loads(f.read(length).decode("utf-8"))
+    def length(entry: dict) -> int:  # the array's blob, its codebook's and its parts' (format 1.4)
+        return (int(entry["data"]["length"]) if "data" in entry else 0) + sum(
+            length(e) for e in ([entry["codebook"]] if "codebook" in entry else []) + entry.get("parts", []))
+
     out = {name: 0 for name in ATTRIBUTES}
     for seg in header["segments"]:
         for name in ATTRIBUTES:
-            out[name] += int(seg["attributes"][name]["data"]["length"])
+            out[name] += length(seg["attributes"][name])
     return out
 
 
@@ -373,7 +458,8 @@ def compress(model: Model, preset: str = "balanced", encodings: dict | None = No
     """Prune, reorder and choose the precision of `model`'s attributes (the model is not modified);
     returns (compressed model, Settings). Write it with `format.save(model, path, **settings.save_kwargs())`.
 
-    preset: "lossless", "balanced" or "small" (PRESETS); the other arguments override it:
+    preset: "lossless", "balanced", "small" or "web" (PRESETS; web writes format 1.4); the other
+    arguments override it:
     encodings: {attribute: "f32" | "f16" | "u8" | "u16"} fixed for those attributes (the others are
     measured); prune_opacity: peak-opacity threshold or None (no pruning); prune_unseen: drop Gaussians
     the file's cameras never see; order: "morton" or None; level: zlib level 0-9. views: where the
@@ -422,12 +508,22 @@ def compress(model: Model, preset: str = "balanced", encodings: dict | None = No
         free = []
     choices = dict(fixed)
     if free:
-        choices.update(_search(model, pruned, views, fixed, free, p, settings))
-    settings.encodings = {name: container(choices[name]) for name in ATTRIBUTES}
-    settings.bits = {name: list(choices[name]) for name in ATTRIBUTES if not isinstance(choices[name], str)}
+        found, pruned = _search(model, pruned, views, fixed, free, p, settings)
+        choices.update(found)
     out = quantized_model(pruned, choices)
+    settings.encodings = {name: _encoding(out, name, choices[name], level) for name in ATTRIBUTES}
+    settings.bits = {name: list(choices[name][1] if isinstance(choices[name], tuple) else choices[name])
+                     for name in ATTRIBUTES if not isinstance(choices[name], str)}
     out.provenance = {**model.provenance, "compress": settings.provenance()}
     return out, settings
+
+
+def _encoding(model: Model, name: str, choice, level: int) -> str:
+    """The encoding string (format.save) of attribute `name` of the quantized `model` for `choice`."""
+    if not (isinstance(choice, tuple) and choice[0] == "compact"):
+        return container(choice)
+    values = np.concatenate([getattr(s, name) for s in model.segments])
+    return compact_encoding(values, choice[1], channel_groups(name, model.segments[0], model.kind), level)
 
 
 #: Encodings used when there is no camera to measure with: conservative per-attribute choices.
@@ -438,6 +534,7 @@ DEFAULTS_WITHOUT_VIEWS = {
     "small": {"opacity": "u8", "t_center": "u16", "t_scale": "f16", "position": "u16", "rotation": "u16",
               "scale": "f16", "features": "u8"},
 }
+DEFAULTS_WITHOUT_VIEWS["web"] = DEFAULTS_WITHOUT_VIEWS["small"]
 
 
 def _search(original: Model, pruned: Model, views: Views, fixed: dict, free: list, preset: Preset,
@@ -454,8 +551,11 @@ def _search(original: Model, pruned: Model, views: Views, fixed: dict, free: lis
     model_mse = (mse(before, views.references) if views.references is not None
                  else 10.0 ** (-preset.assumed_psnr / 10.0))
     budget = budget_mse(SAFETY * preset.max_loss_db, model_mse)
+    if preset.compact:
+        pruned = _prune_within(pruned, views, before, PRUNE_SHARE * budget, settings)
     reference = render_views(pruned, views)
     base = mse(reference, before)  # what pruning (and reordering: ties in depth) changed
+    options = COMPACT_OPTIONS if preset.compact else OPTIONS
 
     def error_of(choices: dict) -> float:
         try:
@@ -471,15 +571,15 @@ def _search(original: Model, pruned: Model, views: Views, fixed: dict, free: lis
     own: dict = {}
 
     def choice_with(name: str, g: int, option) -> object:
-        if isinstance(option, str):
+        if isinstance(option, str) and not preset.compact:
             return option
         bits = [16] * len([x for x in groups if x[0] == name])
         bits[g] = option
-        return bits
+        return ("compact", bits) if preset.compact else bits
 
     def own_error(name: str, g: int, index: int) -> float:
         if (name, g, index) not in own:
-            own[(name, g, index)] = error_of({**fixed, name: choice_with(name, g, OPTIONS[index])})
+            own[(name, g, index)] = error_of({**fixed, name: choice_with(name, g, options[index])})
         return own[(name, g, index)]
 
     # Bit allocation: a group's error falls about 4x per bit, from its measured error at 8 bits; every
@@ -488,38 +588,94 @@ def _search(original: Model, pruned: Model, views: Views, fixed: dict, free: lis
     first = {name: channel_groups(name, pruned.segments[0], pruned.kind) for name in free}
     width = {(name, g): first[name][g].stop - first[name][g].start if g < len(first[name]) else 1
              for name, g in groups}
-    at8 = {k: own_error(*k, OPTIONS.index(8)) for k in groups}
-    predicted = lambda k, i: at8[k] * 4.0 ** (8 - OPTIONS[i])  # noqa: E731
+    at8 = {k: own_error(*k, options.index(8)) for k in groups}
+
+    def predicted(k, i: int) -> float:  # 0 bits (a constant) is measured, and no worse than a constant
+        constant = own_error(*k, 0) if options[0] == 0 else float("inf")
+        return constant if options[i] == 0 else min(constant, at8[k] * 4.0 ** (8 - options[i]))
+
+    def step(k) -> tuple[float, int]:  # (error removed per stored bit, option index) of k's best move
+        i = pick[k]
+        return max(((predicted(k, i) - predicted(k, j)) / ((options[j] - options[i]) * width[k]), j)
+                   for j in range(i + 1, top + 1))
+
     pick = {k: 0 for k in groups}
-    top = OPTIONS.index(16)
+
+    top = options.index(16)
     total_predicted = sum(predicted(k, 0) for k in groups)
     while total_predicted > quant_budget:
         movable = [k for k in groups if pick[k] < top]
         if not movable:
             break
-        best = max(movable, key=lambda k: (predicted(k, pick[k]) - predicted(k, pick[k] + 1)) / width[k])
-        total_predicted -= predicted(best, pick[best]) - predicted(best, pick[best] + 1)
-        pick[best] += 1
+        best = max(movable, key=step)
+        j = step(best)[1]
+        total_predicted -= predicted(best, pick[best]) - predicted(best, j)
+        pick[best] = j
 
-    def combined() -> dict:
+    def combined(picked: dict | None = None) -> dict:
+        picked = pick if picked is None else picked
         out = {}
         for name in free:
-            options = [OPTIONS[pick[(n, g)]] for n, g in groups if n == name]
-            floats = [o for o in options if isinstance(o, str)]
-            out[name] = max(floats) if floats else options  # "f32" > "f16"
+            chosen = [options[picked[(n, g)]] for n, g in groups if n == name]
+            floats = [o for o in chosen if isinstance(o, str)]
+            if preset.compact:
+                out[name] = ("compact", chosen)
+            else:
+                out[name] = max(floats) if floats else chosen  # "f32" > "f16"
         return out
 
     while True:
         choices = {**fixed, **combined()}
         total = error_of(choices)
         settings.search.append({"choices": {k: v for k, v in choices.items()}, "mse": total})
-        movable = [k for k in groups if pick[k] < len(OPTIONS) - 1]
+        movable = [k for k in groups if pick[k] < len(options) - 1]
         if total <= quant_budget or not movable:
             break
         worst = max(movable, key=lambda k: own_error(*k, pick[k]))
         pick[worst] += 1
+    if preset.compact:  # what the predictions left of the budget: measured steps down
+        total = _tighten(pick, groups, width, options, total, quant_budget,
+                         lambda p: error_of({**fixed, **combined(p)}), settings)
     settings.measured_mse = total
-    return combined()
+    return combined(), pruned
+
+
+def _stored_bits(option) -> int:
+    return {"f16": 16, "f32": 32}.get(option, option)
+
+
+def _tighten(pick: dict, groups: list, width: dict, options: tuple, total: float, budget: float, error_of,
+             settings: Settings) -> float:
+    """Lower groups' options one step at a time, each time the step that saves the most stored bits
+    per unit of measured error among those that keep the error of the whole within `budget`; stops
+    when no step fits. Changes `pick`; returns the final error."""
+    while True:
+        steps = []
+        for k in groups:
+            if pick[k] == 0:
+                continue
+            trial = {**pick, k: pick[k] - 1}
+            error = error_of(trial)
+            if error <= budget:
+                saved = (_stored_bits(options[pick[k]]) - _stored_bits(options[pick[k] - 1])) * width[k]
+                steps.append((saved / max(error - total, 1e-12 * budget), k, error))
+        if not steps:
+            return total
+        _, k, total = max(steps, key=lambda step: step[0])
+        pick[k] -= 1
+        settings.search.append({"lowered": list(k), "option": options[pick[k]], "mse": total})
+
+
+def _prune_within(pruned: Model, views: Views, before: list, allowed: float, settings: Settings) -> Model:
+    """`pruned` without the largest of PRUNE_FRACTIONS of each segment's least important Gaussians
+    whose renders stay within `allowed` (MSE against the uncompressed renders `before`); settings
+    records how many went."""
+    for fraction in PRUNE_FRACTIONS:
+        fewer = _with_segments(pruned, [prune_least_important(s, fraction) for s in pruned.segments])
+        if mse(render_views(fewer, views), before) <= allowed:
+            settings.removed_importance = sum(a.count - b.count for a, b in zip(pruned.segments, fewer.segments))
+            return fewer
+    return pruned
 
 
 # -- the report ------------------------------------------------------------------------------------
@@ -556,12 +712,15 @@ class Report:
                  f"prune opacity < {'-' if s.prune_opacity is None else f'{s.prune_opacity:.4g}'}"
                  f"{', unseen' if s.prune_unseen else ''}",
                  f"Gaussians: {self.gaussians_before} -> {self.gaussians_after} "
-                 f"(removed {s.removed_opacity} faint, {s.removed_unseen} unseen)",
+                 f"(removed {s.removed_opacity} faint, {s.removed_unseen} unseen"
+                 f"{f', {s.removed_importance} least important' if s.removed_importance else ''})",
                  f"{'attribute':<10} {'encoding':>8} {'bytes before':>13} {'bytes after':>12} {'ratio':>7}"]
         for name in ATTRIBUTES:
             b, a = self.bytes_before[name], self.bytes_after[name]
             bits = "" if name not in s.bits else " bits " + ",".join(map(str, s.bits[name]))
-            lines.append(f"{name:<10} {s.encodings[name]:>8} {b:>13} {a:>12} {a / max(b, 1):>7.3f}{bits}")
+            encoding = s.encodings[name] if ":" not in s.encodings[name] else "parts"
+            parts = "" if encoding != "parts" else " (" + s.encodings[name] + ")"
+            lines.append(f"{name:<10} {encoding:>8} {b:>13} {a:>12} {a / max(b, 1):>7.3f}{bits}{parts}")
         lines.append(f"{'file':<10} {'':>8} {self.file_before:>13} {self.file_after:>12} "
                      f"{self.file_after / max(self.file_before, 1):>7.3f}")
         if self.views == 0:

@@ -101,8 +101,9 @@ def merge_models(models: Sequence[Model], names: Sequence[str] | None = None, cr
 
 
 def attribute_encodings(path) -> dict[str, set[str]]:
-    """attribute name -> the encodings its segments use in the .stg file `path` (read from the header;
-    the file should already have passed stg_runtime.format.load)."""
+    """attribute name -> the encodings its segments use in the .stg file `path` (read from the header,
+    as format.save's encoding strings: "u16", "u16-delta:3+u8:9", ...; the file should already have
+    passed stg_runtime.format.load)."""
     with open(path, "rb") as f:
         prefix = f.read(stg_format.PREFIX.size)
         _, _, _, length = stg_format.PREFIX.unpack(prefix)
@@ -110,7 +111,8 @@ def attribute_encodings(path) -> dict[str, set[str]]:
     found: dict[str, set[str]] = {}
     for seg in header["segments"]:
         for name, spec in seg["attributes"].items():
-            found.setdefault(name, set()).add(spec["encoding"])
+            if name in ATTRIBUTES:  # unknown attributes (a newer file's) are not read
+                found.setdefault(name, set()).add(stg_format.encoding_of(spec))
     return found
 
 

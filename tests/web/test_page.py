@@ -32,7 +32,7 @@ from stg_runtime.web.export import export_web  # noqa: E402
 ROOT = Path(__file__).resolve().parents[2]
 VECTORS = ROOT / "formats" / "vectors"
 MALICIOUS = ROOT / "tests" / "runtime" / "malicious"
-NAMES = ["lite", "full", "full_quantized", "sh", "full_fisheye", "full_crossfade"]
+NAMES = ["lite", "full", "full_quantized", "sh", "full_fisheye", "full_crossfade", "full_compact"]
 MIN_PSNR = 40.0
 
 
@@ -109,6 +109,25 @@ def test_vector_matches_the_player(site, browser, name, path):
             assert reference.std() > 0.01  # something to see
             values.append(page.psnr(image[..., :3], reference))
     print(f"\n{name} ({path}): PSNR {min(values):.2f} .. {max(values):.2f} dB over {len(values)} views")
+    assert min(values) >= MIN_PSNR, values
+
+
+def test_a_web_preset_file_matches_the_player(site, browser):
+    """stg-convert compress --preset web (format 1.4: parts, differences) of the demo model, played by
+    the page and by the Player at the first frame and later, from the file's first camera."""
+    from stg_runtime.demo import demo_model
+    from stg_train.convert.compress import compress
+
+    folder, url = site
+    model, settings = compress(demo_model("full", num_frames=4), "web")
+    assert any(":" in e for e in settings.encodings.values())
+    stg_format.save(model, folder / "demo.web.stg", **settings.save_kwargs())
+    player = Player(folder / "demo.web.stg", device="cpu")
+    open_model(browser, url, "demo.web.stg")
+    camera = player.cameras[0].resized(160, 120)
+    values = [page.psnr(page.snapshot(browser, camera.to_dict(), t)[..., :3], player.render(camera, t))
+              for t in (0.0, 0.07)]
+    print(f"\nweb preset: PSNR {min(values):.2f} .. {max(values):.2f} dB")
     assert min(values) >= MIN_PSNR, values
 
 
@@ -374,6 +393,9 @@ def ranged_site(tmp_path_factory):
     stg_format.save(model, folder / "long.stg")
     stg_format.save(long_crossfaded_video(), folder / "long_crossfade.stg")
     stg_format.save(model, folder / "raw.stg", codec="raw")
+    stg_format.save(model, folder / "long_compact.stg",  # format 1.4: parts, codebooks, differences
+                    encodings={"opacity": "vq/u8", "position": "u16-delta:3+vq/f16:9",
+                               "features": "u8-delta:1+vq/u8:2"})
     data = bytearray((folder / "raw.stg").read_bytes())
     data[-40] ^= 0xFF  # the low byte of a float of the last segment (stored raw): only the checksum can tell
     (folder / "long_damaged.stg").write_bytes(bytes(data))
@@ -402,6 +424,25 @@ def test_long_video_streams_segments(ranged_site, browser):
         assert page.psnr(image[..., :3], player.render(camera, t)) >= MIN_PSNR, t
     sent = sum(n for path, n in page.RangeHandler.sent if path == "/long.stg")
     assert sent == size, page.RangeHandler.sent  # every byte once
+    assert browser.execute_script("return [window.stg.player.file.checked, window.stg.error]") == [True, None]
+
+
+def test_long_compact_video_streams_segments(ranged_site, browser):
+    """A format 1.4 file (parts, codebooks, differences) streams as a 1.3 one: the first frame needs
+    its segment's bytes (with their codebooks and parts) and the one ahead, not the rest."""
+    folder, url = ranged_site
+    player = Player(folder / "long_compact.stg", device="cpu")
+    camera = player.cameras[0]
+    page.RangeHandler.sent.clear()
+    open_model(browser, url, "long_compact.stg")
+    image = page.snapshot(browser, camera.to_dict(), 0.0)
+    assert page.psnr(image[..., :3], player.render(camera, 0.0)) >= MIN_PSNR
+    sent = sum(n for path, n in page.RangeHandler.sent if path == "/long_compact.stg")
+    size = (folder / "long_compact.stg").stat().st_size
+    assert sent < 0.75 * size, (sent, size)
+    for t in (3.95, 2.5):  # the last segment first: its first blob (a codebook) lies past the one before
+        image = page.snapshot(browser, camera.to_dict(), t)
+        assert page.psnr(image[..., :3], player.render(camera, t)) >= MIN_PSNR, t
     assert browser.execute_script("return [window.stg.player.file.checked, window.stg.error]") == [True, None]
 
 
