@@ -43,7 +43,8 @@ def llff_to_camera(row: np.ndarray, width: int, height: int, name: str = "") -> 
 
 def _load_poses(path: Path) -> np.ndarray:
     if not path.is_file():
-        raise DataError(f"{path}: missing (the N3V layout needs poses_bounds.npy beside the videos)")
+        raise DataError(f"{path}: missing (the N3V layout needs poses_bounds.npy beside the videos; "
+                        "stg-prep calibrates videos that have no poses)")
     try:
         with open(path, "rb") as f:
             magic = f.read(6)

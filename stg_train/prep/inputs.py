@@ -1,5 +1,6 @@
 """The raw inputs of `stg-prep`: one camera per video file (mp4, mov, mkv, avi, webm, m4v) or per folder
-of numbered frames (png, jpg) in one folder, found, probed and checked before anything is written.
+of numbered frames (png, jpg) in one folder, found, probed and checked before anything is written. A
+folder that holds only folders (a tree of cameras, such as N3V's frames/) is not a camera and is skipped.
 
 A camera's name is its file's stem (`cam01.mp4` -> `cam01`) or its folder's name. Frames of a folder are
 taken in number order (`1.png, 2.png, 10.png`), videos in decoding order. Every problem is a PrepError
@@ -75,6 +76,14 @@ def _frame_files(folder: Path) -> list[Path]:
     return sorted(files, key=_number_key)
 
 
+def _is_container(folder: Path) -> bool:
+    """Whether `folder` holds folders and no frame files: a tree of cameras (N3V's frames/), not one."""
+    if not folder.is_dir():
+        return False
+    entries = [p for p in folder.iterdir() if not p.name.startswith(".")]
+    return any(p.is_dir() for p in entries) and not any(p.suffix.lower() in IMAGE_EXTENSIONS for p in entries)
+
+
 def _probe_folder(folder: Path) -> Clip:
     files = _frame_files(folder)
     if not files:
@@ -117,6 +126,8 @@ def find_clips(folder) -> list[Clip]:
         if entry.name.startswith("."):
             continue
         if entry.is_dir():
+            if _is_container(entry):  # e.g. N3V's frames/camXX beside the videos: not a camera
+                continue
             clip = _probe_folder(entry)
         elif entry.suffix.lower() in VIDEO_EXTENSIONS:
             clip = _probe_video(entry)
@@ -167,11 +178,12 @@ def source_signature(clips: list[Clip]) -> str:
 
 def is_raw_videos(folder) -> bool:
     """Whether `folder` is stg-prep's input rather than a dataset: a video file or a folder of frames
-    directly in it, and no layout's cameras (stg_train.data.layouts.calibration_file)."""
+    directly in it, no layout's cameras (stg_train.data.layouts.calibration_file) and no N3V `frames/`
+    folder of camera folders (a Neural 3D Video dataset that lacks its poses, whose error names them)."""
     from ..data.layouts import calibration_file
 
     root = Path(folder)
-    if not root.is_dir() or calibration_file(root) is not None:
+    if not root.is_dir() or calibration_file(root) is not None or _is_container(root / "frames"):
         return False
     for entry in root.iterdir():
         if entry.name.startswith("."):

@@ -169,3 +169,14 @@ def test_cameras_are_named_by_file_and_folder_and_frames_taken_in_number_order(t
         ("cam00", 10, 64, 48, 30.0), ("cam01", 12, 64, 48, None)]
     assert [p.name for p in clips[1].images][:4] == ["0.png", "1.png", "2.png", "3.png"]
     assert clips[1].images[-1].name == "11.png"
+
+
+def test_a_folder_of_camera_folders_is_not_a_camera(tmp_path, videos):
+    """N3V's frames/camXX beside its videos: stg-prep takes the videos and skips the tree; stg-train reads
+    such a folder as an N3V dataset (whose missing poses_bounds.npy it names), not as raw videos."""
+    from stg_train.prep.inputs import is_raw_videos
+
+    assert is_raw_videos(videos)
+    _frames(videos / "frames" / "cam00", 10)
+    assert [c.name for c in find_clips(videos)] == ["cam00", "cam01"]
+    assert not is_raw_videos(videos)
