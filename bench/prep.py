@@ -4,6 +4,7 @@ and the pose errors, for rigs of 12 and 20 cameras (docs/datasets.md, "Your own 
 
     python bench/prep.py [--cameras 12,20] [--size 640x480] [--frames 30] [--data DIR] [--threads N]
                          [--train] [--seeds 0,1] [--iterations N] [--downscale K]
+                         [--world prepared|truth] [--reuse]
 
 For each camera count the scene (stg_train.synthetic, `stg-synth --cameras C`) is written in the N3V
 layout into DATA/n3v_C_WxH_F/ (reused when there), and from it a folder of raw videos: each camera's lossless
@@ -14,8 +15,9 @@ errors after one similarity to the truth (stg_train.rig.gauge.aligned_pose_error
 the rig's largest distance between cameras).
 
 --train (expensive: four trainings per camera count) trains DATA/prep_C/ and DATA/true_C/, the same
-frames and 3D points with the true cameras (the points moved by the same similarity), with stg-train's
-defaults for each seed, and evaluates each with `stg-eval --align-poses` on its held-out cam00; it
+frames and 3D points with the true cameras (moved into the prepared world by one similarity, so that
+only the calibration's errors differ; --world truth moves the points into the truth's world instead),
+with stg-train's defaults for each seed, and evaluates each with `stg-eval --align-poses` on its held-out cam00; it
 prints both PSNRs and their difference. --downscale K trains and evaluates both at 1/K of the frames'
 size (the calibration still sees them whole).
 """
@@ -27,6 +29,7 @@ import os
 import shutil
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -61,9 +64,11 @@ def errors(prepared: Path, truth) -> tuple[float, float]:
     return float(rotation.max()), float(100 * position.max() / size)
 
 
-def true_rig(prepared: Path, out: Path, truth) -> None:
-    """out/: prepared/'s frames (hard links) and 3D points with the true cameras, the points moved into
-    the truth's world by the similarity that takes the prepared cameras onto the true ones."""
+def true_rig(prepared: Path, out: Path, truth, world: str = "prepared") -> None:
+    """out/: prepared/'s frames (hard links) and 3D points with the true cameras. world "prepared": the
+    true cameras moved into the prepared world (by the inverse of the similarity that takes the prepared
+    cameras onto the true ones), so the two runs differ by the calibration's errors alone; "truth": the
+    points moved into the truth's world instead (the world's axes and scale then differ too)."""
     import pycolmap
 
     from stg_train.data import load_dataset
@@ -77,20 +82,36 @@ def true_rig(prepared: Path, out: Path, truth) -> None:
     shutil.rmtree(out, ignore_errors=True)
     shutil.copytree(prepared / "images", out / "images", copy_function=os.link)
     xyz, rgb = reconstruction_points(read_reconstruction(prepared / "sparse" / "0"))
+    if world == "prepared":  # x_truth = s R x + t: the true camera [Rc | tc] is [Rc R | (Rc t + tc) / s] here
+        truth = [replace(c, world_to_camera=_moved(c.world_to_camera, scale, rotation, shift)) for c in truth]
+    else:
+        xyz = scale * xyz @ rotation.T + shift
     rec = reconstruction_from_cameras(list(truth))
-    for p, c in zip(scale * xyz @ rotation.T + shift, np.round(rgb * 255).astype(np.uint8)):
+    for p, c in zip(xyz, np.round(rgb * 255).astype(np.uint8)):
         rec.add_point3D(p, pycolmap.Track(), c)
     write_reconstruction(rec, out / "sparse" / "0")
 
 
-def held_out_psnr(data: Path, out: Path, seed: int, iterations: int | None, downscale: int) -> float:
-    """PSNR on cam00 (held out) of stg-train's defaults on data, by stg-eval --align-poses."""
+def _moved(w2c: np.ndarray, scale: float, rotation: np.ndarray, shift: np.ndarray) -> np.ndarray:
+    """A world-to-camera (4, 4) of the world x_truth = scale rotation x + shift, in the world of x."""
+    out = np.eye(4)
+    out[:3, :3] = w2c[:3, :3] @ rotation
+    out[:3, 3] = (w2c[:3, :3] @ shift + w2c[:3, 3]) / scale
+    return out
+
+
+def held_out_psnr(data: Path, out: Path, seed: int, iterations: int | None, downscale: int,
+                  reuse: bool = False) -> float:
+    """PSNR on cam00 (held out) of stg-train's defaults on data, by stg-eval --align-poses; with `reuse`,
+    that of an earlier run into `out` where it has one."""
+    report = out / "eval.json"
+    if reuse and report.is_file():
+        return float(json.loads(report.read_text())["psnr"])
     scale = ["--downscale", str(downscale)]
     train = ["stg-train", str(data), "--out", str(out), "--seed", str(seed), "--quiet", "--force", *scale]
     if iterations:
         train += ["--iterations", str(iterations)]
     subprocess.run(train, check=True, stdout=subprocess.DEVNULL)
-    report = out / "eval.json"
     subprocess.run(["stg-eval", str(out / "model.stg"), str(data), "--align-poses", "--json", str(report), *scale],
                    check=True, stdout=subprocess.DEVNULL)
     return float(json.loads(report.read_text())["psnr"])
@@ -107,6 +128,9 @@ def main() -> None:
     ap.add_argument("--seeds", default="0,1")
     ap.add_argument("--iterations", type=int, default=None, help="training steps (default stg-train's)")
     ap.add_argument("--downscale", type=int, default=1, help="train and evaluate at 1/K of the size")
+    ap.add_argument("--world", choices=("prepared", "truth"), default="prepared",
+                    help="the true-pose run's world: the prepared one (only the poses differ) or the truth's")
+    ap.add_argument("--reuse", action="store_true", help="reuse the preparation and the runs already evaluated in DATA")
     args = ap.parse_args()
     width, height = map(int, args.size.split("x"))
     data = Path(args.data)
@@ -120,21 +144,26 @@ def main() -> None:
             write_n3v(n3v, scene, num_cameras=count, num_frames=args.frames, width=width, height=height)
         truth = scene.cameras(count, width, height)
         cuts = np.random.default_rng(0).integers(0, 6, count)
-        raw_videos(n3v, data / f"raw_{count}", cuts)
-        with progress_stages() as stage:
-            report = prepare(data / f"raw_{count}", data / f"prep_{count}", force=True, threads=args.threads,
-                             progress=stage)
+        done = data / f"prep_{count}" / "prep.json"
+        if args.reuse and done.is_file():  # the runs reused were trained on this calibration
+            report = json.loads(done.read_text())
+        else:
+            raw_videos(n3v, data / f"raw_{count}", cuts)
+            with progress_stages() as stage:
+                report = prepare(data / f"raw_{count}", data / f"prep_{count}", force=True, threads=args.threads,
+                                 progress=stage)
         exact = [c["offset"] for c in report["cameras"]] == [int(max(cuts) - c) for c in cuts]
         rotation, position = errors(data / f"prep_{count}", truth)
         rows.append((count, report, exact, rotation, position))
         if args.train:
-            true_rig(data / f"prep_{count}", data / f"true_{count}", truth)
+            name = f"true_{count}" + ("" if args.world == "prepared" else "_truthworld")
+            true_rig(data / f"prep_{count}", data / name, truth, args.world)
             for seed in map(int, args.seeds.split(",")):
                 runs = data / "runs"
                 prepared = held_out_psnr(data / f"prep_{count}", runs / f"prep_{count}_s{seed}", seed, args.iterations,
-                                         args.downscale)
-                true = held_out_psnr(data / f"true_{count}", runs / f"true_{count}_s{seed}", seed, args.iterations,
-                                     args.downscale)
+                                         args.downscale, args.reuse)
+                true = held_out_psnr(data / name, runs / f"{name}_s{seed}", seed, args.iterations, args.downscale,
+                                     args.reuse)
                 print(f"{count} cameras, seed {seed}: held-out cam00 {prepared:.2f} dB prepared, {true:.2f} dB "
                       f"true poses, difference {prepared - true:+.2f} dB")
     stages = ("check", "read", "sync", "calibrate", "write")
