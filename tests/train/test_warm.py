@@ -36,3 +36,29 @@ def test_past_gaussians():
     raw["t_scale_raw"] = torch.zeros(3, 1, dtype=torch.float64)
     raw["opacity_logit"] = torch.full((3, 1), 2.0, dtype=torch.float64)
     assert past_gaussians(raw, 0.0, 1.0).tolist() == [True, False, False]
+
+
+def test_a_warm_segment_starts_where_its_predecessor_ends(synthetic_n3v, tmp_path):
+    """A warm chain of two segments trains; before any step, segment 1's Gaussians render its first
+    frame as segment 0's do at that video frame (a context frame of segment 0)."""
+    from stg_train.cli.train import main as train_main
+    from stg_train.data import load_n3v
+    from stg_train.export import GoldenDiff, trainer_render
+    from stg_train.segments import plan_segments
+    from stg_train.params import STGParams
+    from stg_train.warm import warm_start
+
+    scene = synthetic_n3v("warm_scene", num_cameras=4, num_frames=8, fps=4.0, width=64, height=48)
+    out = tmp_path / "run"
+    assert train_main([str(scene), "--out", str(out), "--segment-frames", "4", "--iterations", "8", "--points",
+                       "200", "--init", "volume", "--segment-context", "1", "--segment-schedule", "warm",
+                       "--quiet"]) == 0
+    metrics = __import__("json").loads((out / "metrics.json").read_text())
+    assert [s["warm"] for s in metrics["segments"]] == [False, True]
+    plan = plan_segments(8, 4)
+    start = warm_start(out / "segments" / "00" / "checkpoint.pt", plan[0], plan[1], (1, 0))
+    state = torch.load(out / "segments" / "00" / "checkpoint.pt", map_location="cpu", weights_only=True)
+    before = STGParams.from_state_dict(state["params"], "cpu")
+    ds = load_n3v(scene, prefer_png=True)
+    cam = ds.cameras[ds.test_cameras[0]]
+    assert GoldenDiff.of(trainer_render(start.params, cam, 0.0), trainer_render(before, cam, 1.0)).ok
