@@ -62,3 +62,38 @@ def test_a_warm_segment_starts_where_its_predecessor_ends(synthetic_n3v, tmp_pat
     ds = load_n3v(scene, prefer_png=True)
     cam = ds.cameras[ds.test_cameras[0]]
     assert GoldenDiff.of(trainer_render(start.params, cam, 0.0), trainer_render(before, cam, 1.0)).ok
+
+
+class _Killed(Exception):
+    pass
+
+
+def test_a_killed_warm_chain_resumes_where_it_stopped(synthetic_n3v, tmp_path, monkeypatch):
+    """Killed inside the warm segment 1, --resume keeps segment 0, continues segment 1 from its checkpoint
+    (still warm, its shorter schedule) and ends with the uninterrupted run's file."""
+    import numpy as np
+
+    from stg_runtime import format as stg_format
+    from stg_train.cli.train import main as train_main
+    from stg_train.trainer import Trainer
+
+    scene = synthetic_n3v("warm_scene", num_cameras=4, num_frames=8, fps=4.0, width=64, height=48)
+    args = ["--segment-frames", "4", "--iterations", "12", "--points", "200", "--init", "volume",
+            "--segment-context", "0", "--segment-schedule", "warm", "--checkpoint-every", "1", "--quiet"]
+    assert train_main([str(scene), "--out", str(tmp_path / "whole")] + args) == 0
+    step = Trainer.train_step
+
+    def killed(trainer):
+        if trainer.warm and trainer.step == 2:
+            raise _Killed
+        return step(trainer)
+
+    monkeypatch.setattr(Trainer, "train_step", killed)
+    with pytest.raises(_Killed):
+        train_main([str(scene), "--out", str(tmp_path / "killed")] + args)
+    monkeypatch.undo()
+    assert train_main([str(scene), "--out", str(tmp_path / "killed"), "--resume"] + args) == 0
+    a, b = (stg_format.load(tmp_path / n / "model.stg") for n in ("whole", "killed"))
+    for sa, sb in zip(a.segments, b.segments):
+        for name, arr in sa.arrays().items():
+            np.testing.assert_array_equal(arr, getattr(sb, name), err_msg=name)
