@@ -37,3 +37,5 @@ def __getattr__(name: str):
     if name == "LAYOUTS":
         return tuple(LAYOUT_SPECS)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+#: TrainConfig.segment_schedule values: how a long video's segments start (stg_train.warm).
+SEGMENT_SCHEDULES = ("warm", "independent")

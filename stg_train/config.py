@@ -65,7 +65,11 @@ class TrainConfig:
     gains relative to the rig's, as the rig's measurement before training found them where it decided
     on an appearance (stg_train.rig.self_calibration.calibrate_rig; None: not measured): the initial points
     are drawn from the pictures divided by them (CameraRig.initial_brightness), and a long video's
-    segments, which are given the measurement's choices, share them.
+    segments, which are given the measurement's choices, share them; segment_schedule: how a long
+    video's segments start, "warm" (each from its predecessor's Gaussians at the seam, stg_train.warm,
+    trained for warm_fraction of `iterations`) or "independent" (each from its own initial points, the
+    paper's); warm_fraction: a warm segment's share of a cold segment's iterations; warm_chain: with
+    "warm", every warm_chain-th segment starts cold (parallel chains; 0: one chain).
     docs/training.md says which defaults are the reference's and which are ours, with the measurements behind them.
     """
 
@@ -99,6 +103,9 @@ class TrainConfig:
     segment_context: int = 4
     edge_weight: float = 3.0
     camera_gains: dict | None = None
+    segment_schedule: str = "independent"
+    warm_fraction: float = 0.25
+    warm_chain: int = 0
 
     def for_dataset(self, dataset) -> "TrainConfig":
         """These settings with the choices left open made: init "auto" (or None) -> default_method(dataset),
@@ -115,10 +122,14 @@ class TrainConfig:
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":
         """The settings as saved (asdict); a setting the dict lacks takes its default, except those whose
-        default became "auto" later (SAVED_BEFORE_AUTO): a run saved before knew them as off."""
+        default became "auto" later (SAVED_BEFORE_AUTO): a run saved before knew them as off; likewise
+        segment_schedule (SAVED_BEFORE): a run saved before trained its segments independently."""
         names = {f.name for f in fields(cls)}
-        return cls(**{**SAVED_BEFORE_AUTO, **{k: v for k, v in d.items() if k in names}})
+        return cls(**{**SAVED_BEFORE, **{k: v for k, v in d.items() if k in names}})
 
 
 #: The settings whose default became "auto" (2026-12-04), with the value a checkpoint without them ran with.
 SAVED_BEFORE_AUTO = {"appearance": False, "lens_falloff": None, "pose_refine": False}
+#: Settings added later whose default is not what a checkpoint without them ran with: warm segments
+#: (issue 51, 2026-12-07) came after independent ones.
+SAVED_BEFORE = {**SAVED_BEFORE_AUTO, "segment_schedule": "independent"}

@@ -47,7 +47,8 @@ from .rig.self_calibration import AUTO_FIELDS, calibrate_rig, needs_calibration
 from .segments import (PLAN_NAME, SegmentError, cache_chunks, check_plan, finished, missing_message, plan_segments, pooled,
                        segment_dir, segment_view, worst_check)
 from .synthetic import SyntheticScene, write_n3v
-from .trainer import Trainer, TrainConfig
+from .trainer import Trainer, TrainConfig, run_steps
+from .warm import chain_head, start_of, warm_steps
 
 
 
@@ -89,20 +90,24 @@ def warnings_said():
 CALIBRATION_STAGE = "measuring the rig (lenses, colours, poses)"
 
 
-def new_trainer(dataset, config: TrainConfig, out: Path, quiet: bool = False) -> Trainer:
+def new_trainer(dataset, config: TrainConfig, out: Path, quiet: bool = False, warm=None) -> Trainer:
     """Trainer(dataset, config, out) with progress bars while the rig is measured (a setting "auto",
     stg_train.rig.self_calibration), while SfM computes the initial points and while the optical flow gives
     them their motion; its warnings (SfM found too few points) are printed as "stg-train: warning: ..."
     lines, and what the rig's measurement decided and the initial points' split, coverage and depth
-    bounds as "stg-train: ..." lines (unless quiet)."""
+    bounds as "stg-train: ..." lines (unless quiet). warm: a stg_train.warm.WarmStart to start from
+    instead of initial points (a warm-started segment)."""
     with warnings_said(), progress_stages(enabled=not quiet) as stage:
         trainer = Trainer(dataset, config, out_dir=out, init_progress=stage("structure from motion"),
                           motion_progress=stage("initial motion (optical flow)"),
-                          calibration_progress=stage(CALIBRATION_STAGE))
+                          calibration_progress=stage(CALIBRATION_STAGE), warm=warm)
     if not quiet:
         for line in (() if trainer.rig.calibration is None else trainer.rig.calibration.notes):
             print(f"stg-train: {line}", file=sys.stderr)
-        for line in trainer.initial.describe().splitlines():
+        if warm is not None:
+            print(f"stg-train: warm start: {warm.carried} Gaussians carried from the previous segment, "
+                  f"{warm.dropped} past ones dropped; {trainer.steps} steps", file=sys.stderr)
+        for line in (() if trainer.initial is None else trainer.initial.describe().splitlines()):
             print(f"stg-train: {line}", file=sys.stderr)
     return trainer
 
@@ -248,9 +253,10 @@ def _stop_requests(enabled: bool):
             signal.signal(sig, h)
 
 
-def _run_training(trainer: Trainer, ckpt: Path, quiet: bool, callback, stop_on_signal: bool) -> None:
-    """trainer.train, stoppable by Ctrl-C / SIGTERM after a step (stop_on_signal): then the checkpoint is
-    saved and Interrupted raised."""
+def _run_training(trainer: Trainer, ckpt: Path, quiet: bool, callback, stop_on_signal: bool,
+                  label: str = "train", job: tuple[int, int] | None = None) -> None:
+    """trainer.train (label, job: its progress bar's), stoppable by Ctrl-C / SIGTERM after a step
+    (stop_on_signal): then the checkpoint is saved and Interrupted raised."""
     with _stop_requests(stop_on_signal) as stop_requested:
         def step_done(t):
             if callback is not None:
@@ -258,7 +264,7 @@ def _run_training(trainer: Trainer, ckpt: Path, quiet: bool, callback, stop_on_s
             if stop_requested():
                 raise _Stop
         try:
-            trainer.train(progress=not quiet, callback=step_done)
+            trainer.train(progress=not quiet, callback=step_done, label=label, job=job)
         except _Stop:
             trainer.save_checkpoint(ckpt)
             raise Interrupted(ckpt, trainer.step, trainer.steps) from None
@@ -302,7 +308,8 @@ def _resume(dataset, ckpt: Path, out: Path, config: TrainConfig, given: dict[str
 
 def train(dataset, out, config: TrainConfig, resume: bool = False, quiet: bool = False, check: bool = True,
           segment_frames: int | None = None, segments: Sequence[int] | None = None, lpips: dict | None = None,
-          callback=None, given: dict[str, str] | None = None, stop_on_signal: bool = False) -> dict:
+          callback=None, given: dict[str, str] | None = None, stop_on_signal: bool = False, warm=None,
+          label: str = "train", job: tuple[int, int] | None = None) -> dict:
     """Train (or resume) into `out`, export out/model.stg, evaluate it with the runtime and write
     out/metrics.json; returns the metrics. With segment_frames, a video of more frames (or any run
     naming `segments`, a list of indices) is trained segment by segment (train_segments). lpips: the
@@ -311,6 +318,8 @@ def train(dataset, out, config: TrainConfig, resume: bool = False, quiet: bool =
     given: TrainConfig field -> the option that set it (e.g. {"iterations": "--iterations 500"}): on
     resume, these replace the checkpoint's where RESUMABLE and are refused where not (ResumeConflict).
     stop_on_signal: Ctrl-C / SIGTERM save the checkpoint and raise Interrupted (see the module doc).
+    warm: a stg_train.warm.WarmStart a new run starts from (a resumed run continues its checkpoint);
+    label, job: the progress bar's title and the whole job's steps (Trainer.train).
     Raises DataError and SegmentError naming the problem."""
     _check_trainable(dataset)
     if segment_frames and (segments is not None or len(plan_segments(dataset.num_frames, segment_frames)) > 1):
@@ -325,16 +334,17 @@ def train(dataset, out, config: TrainConfig, resume: bool = False, quiet: bool =
     else:
         if resume and not quiet:
             print(f"no checkpoint in {out}: starting a new run", file=sys.stderr)
-        trainer = new_trainer(dataset, config, out, quiet)
+        trainer = new_trainer(dataset, config, out, quiet, warm)
     lpips = _lpips(quiet) if lpips is None else lpips  # (said after the run's own settings and notices)
     if trainer.step < trainer.steps:
-        _run_training(trainer, ckpt, quiet, callback, stop_on_signal)
+        _run_training(trainer, ckpt, quiet, callback, stop_on_signal, label, job)
     if trainer.rig.remeasure_note and not quiet:
         print(f"stg-train: {trainer.rig.remeasure_note}", file=sys.stderr)
     with warnings_said():  # export's ExportWarning: said, the run goes on
         report = export_trainer(trainer, out / "model.stg", check=check)
     result = evaluate_player(Player(report.path, device="cpu"), dataset.shown(), lpips=lpips)
     metrics = {"heldout": heldout(result), "iterations": trainer.step, "train_seconds": trainer.seconds,
+               "warm": trainer.warm,
                "gaussians": trainer.params.count, "file_bytes": report.bytes,
                "export_check": None if report.diff is None else report.diff._asdict(),
                "settings": asdict(trainer.config)}
@@ -399,13 +409,28 @@ def train_segments(dataset, out, config: TrainConfig, segment_frames: int, indic
     if todo:
         config, given = calibrated_once(dataset, config, given, quiet)
     lpips = _lpips(quiet)
+    steps = {i: segment_steps(dataset, plan, i, config) for i in todo}
+    done = 0
     for i in todo:
         span, folder = plan[i], segment_dir(out, i, len(plan))
+        warm = None if (resume and (folder / "checkpoint.pt").exists()) else start_of(out, plan, i, config, config.device)
         if not quiet:
-            print(f"segment {i} of 0-{len(plan) - 1} ({span.frames()}) -> {folder}", file=sys.stderr)
+            how = "" if config.segment_schedule != "warm" else (
+                f", warm from segment {i - 1}" if warm is not None else ", cold")
+            print(f"segment {i} of 0-{len(plan) - 1} ({span.frames()}{how}) -> {folder}", file=sys.stderr)
         train(segment_view(dataset, span, config.segment_context), folder, config, resume, quiet, check, lpips=lpips,
-              callback=callback, given=given, stop_on_signal=stop_on_signal)
+              callback=callback, given=given, stop_on_signal=stop_on_signal, warm=warm,
+              label=f"segment {i}/{len(plan) - 1}", job=(done, sum(steps.values())))
+        done += steps[i]
     return finish_segments(dataset, out, config, segment_frames, quiet, lpips)
+
+
+def segment_steps(dataset, plan, index: int, config: TrainConfig) -> int:
+    """The training steps segment `index` of `plan` is expected to take (trainer.run_steps of its view;
+    a warm segment's share, warm.warm_steps, unless it heads a chain), for the job's progress bar."""
+    view = segment_view(dataset, plan[index], config.segment_context)
+    cold = config.segment_schedule != "warm" or chain_head(index, config.warm_chain)
+    return run_steps(config.iterations if cold else warm_steps(config.iterations, config.warm_fraction), view)
 
 
 def _check_indices(chosen, plan, num_frames: int, segment_frames: int) -> None:
@@ -464,6 +489,7 @@ def finish_segments(dataset, out: Path, config: TrainConfig, segment_frames: int
         per_segment.append({"index": s.index, "start_frame": s.start, "num_frames": s.count,
                             "folder": str(folders[s.index]), "iterations": m["iterations"],
                             "train_seconds": m["train_seconds"], "gaussians": m["gaussians"],
+                            "warm": bool(m.get("warm", False)),
                             "file_bytes": m["file_bytes"], "heldout_psnr": m["heldout"]["psnr"],
                             "export_check": m["export_check"]})
     model_path = None

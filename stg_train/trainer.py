@@ -36,6 +36,7 @@ from .params import LearningRates, STGParams, extent_of, position_lr, view_input
 from .render import rasterize
 from .rig.camera_rig import CameraRig
 from .strategy import Schedule, StepContext, Strategy, StrategySetup, build_strategies
+from .warm import warm_steps
 
 CHECKPOINT_VERSION = 1
 #: The time axis of the checkpoints written here (frame_time): normalised over the shown frames. Those of a
@@ -65,6 +66,11 @@ def frame_time(dataset, j: int) -> float:
 def shown_frames(dataset):
     """The dataset without its context frames (Dataset.shown; a dataset without them as it is)."""
     return dataset.shown() if hasattr(dataset, "shown") else dataset
+
+
+#: Schedule overrides of a warm-started segment (stg_train.warm): no opacity reset (it would throw away
+#: the opacities carried from the previous segment); density control otherwise stretched to its steps.
+WARM_SCHEDULE = {"reset_every": 0}
 
 
 #: How many frames at each end of the shown frames (trainer.frame_weights) TrainConfig.edge_weight applies to.
@@ -110,7 +116,7 @@ class Trainer:
     def __init__(self, dataset, config: TrainConfig, out_dir=None, _state: dict | None = None,
                  init_progress: Callable[[int, int], None] | None = None,
                  motion_progress: Callable[[int, int], None] | None = None,
-                 calibration_progress: Callable[[int, int], None] | None = None):
+                 calibration_progress: Callable[[int, int], None] | None = None, warm=None):
         if config.motion_init not in MOTION_INITS:
             raise ValueError(f"motion_init must be one of {MOTION_INITS}, got {config.motion_init!r}")
         # the cameras' "auto" settings decided from the rig (a resumed run keeps its choices): self.config
@@ -122,13 +128,25 @@ class Trainer:
         self.device = torch.device(config.device)
         self.extent = extent_of([dataset.cameras[i] for i in dataset.train_cameras])
         self.lr = LearningRates(**config.learning_rates).scaled(config.lr_scale)
-        self.steps = run_steps(config.iterations, dataset)
+        self.warm = warm is not None or bool((_state or {}).get("warm"))
+        cold_steps = run_steps(config.iterations, dataset)
+        self.steps = run_steps(warm_steps(config.iterations, config.warm_fraction), dataset) if self.warm else cold_steps
         self.frame_p = frame_weights(dataset.num_frames, getattr(dataset, "context_frames", (0, 0)), config.edge_weight)
-        if config.stretch_rates:
-            self.lr = self.lr.stretched(self.steps)
-        self.schedule = Schedule.scaled(self.steps, **config.schedule)
+        if config.stretch_rates:  # a warm start's velocities are trained already: a cold run's rates
+            self.lr = self.lr.stretched(cold_steps)
+        self.schedule = Schedule.scaled(self.steps, **{**(WARM_SCHEDULE if self.warm else {}), **config.schedule})
         self._rays: dict[int, Tensor] = {}
-        if _state is None:
+        if _state is None and warm is not None:
+            random.seed(config.seed)
+            torch.manual_seed(config.seed)
+            self.rng = np.random.default_rng(config.seed)
+            self.initial = None
+            if dataset.bounds is None and warm.bounds is not None:
+                self.dataset = dataset.with_bounds(warm.bounds, warm.bounds_source or "sfm")
+            self.params = STGParams.from_state_dict(warm.params.state_dict(), self.device)
+            self.box = np.asarray(warm.box)
+            self.step = 0
+        elif _state is None:
             random.seed(config.seed)
             torch.manual_seed(config.seed)
             self.rng = np.random.default_rng(config.seed)
@@ -260,11 +278,14 @@ class Trainer:
         self.rig.end_step(self.step, lambda camera, f: self.render(camera, frame_time(ds, f)))
         return {"loss": loss.item(), "psnr": psnr_of_mse(max(mse, 1e-12))}
 
-    def train(self, progress: bool = True, callback: Callable[["Trainer"], None] | None = None) -> None:
+    def train(self, progress: bool = True, callback: Callable[["Trainer"], None] | None = None,
+              label: str = "train", job: tuple[int, int] | None = None) -> None:
         """Run to self.steps, checkpointing every config.checkpoint_every steps and at the end.
-        callback(trainer) runs after each step (its time is not counted in self.seconds)."""
+        callback(trainer) runs after each step (its time is not counted in self.seconds). label: the
+        progress bar's title (a long video's: its segment); job: (steps of the job before this run,
+        the job's steps), shown on the bar as the whole job's share done."""
         cfg = self.config
-        bar = Progress(total=self.steps - self.step, desc="train" if self.step == 0 else f"train from {self.step}",
+        bar = Progress(total=self.steps - self.step, desc=label if self.step == 0 else f"{label} from {self.step}",
                        enabled=progress)
         try:
             while self.step < self.steps:
@@ -274,6 +295,8 @@ class Trainer:
                 self.history.append({"step": self.step, **figures, "gaussians": self.params.count,
                                      "seconds": self.seconds})
                 bar.set(loss=round(figures["loss"], 4), psnr=round(figures["psnr"], 2), gaussians=self.params.count)
+                if job is not None:
+                    bar.set(job=f"{100 * (job[0] + self.step) / max(job[1], 1):.0f}%")
                 bar.update()
                 if self.out_dir is not None and (self.step % cfg.checkpoint_every == 0 or self.step == self.steps):
                     self.save_checkpoint(self.out_dir / "checkpoint.pt")
@@ -303,7 +326,8 @@ class Trainer:
 
     # -- checkpoints ----------------------------------------------------------------------------------
     def state_dict(self) -> dict:
-        return {"version": CHECKPOINT_VERSION, "time": TIME_AXIS, "config": asdict(self.config), "step": self.step,
+        return {"version": CHECKPOINT_VERSION, "time": TIME_AXIS, "warm": self.warm, "config": asdict(self.config),
+                "step": self.step,
                 "params": self.params.state_dict(), "optimizer": self.optimizer.state_dict(),
                 "strategies": [s.state_dict() for s in self.strategies], "box": self.box.tolist(),
                 "history": self.history, "seconds": self.seconds,

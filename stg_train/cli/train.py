@@ -7,7 +7,7 @@ import sys
 import time
 from pathlib import Path
 
-from ..choices import INIT_METHODS, MOTION_INITS, SPLATTERS
+from ..choices import INIT_METHODS, MOTION_INITS, SEGMENT_SCHEDULES, SPLATTERS
 from ..config import DEMO_SCENE, DEMO_TRAINING, TrainConfig
 from ..rig.lens import known_falloff
 from .common import (Parser, add_dataset_options, check_dataset_options, dataset_options, error, format_table,
@@ -36,10 +36,10 @@ first prepared into OUT/prep/ as stg-prep does (synchronised, calibrated, in the
 from there; a later run with the same videos reuses OUT/prep/.
 --test-camera NAME holds out another camera; --fps sets the frame rate of layouts without one (default 30).
 Writes OUT/model.stg (the player's file), OUT/checkpoint.pt and OUT/metrics.json. A video longer than
---segment-frames is trained as consecutive independent segments, each in OUT/segments/NN/ (checkpoint.pt,
-model.stg, metrics.json), merged into one OUT/model.stg once every segment is trained; each segment is
-also fitted to --segment-context frames of its neighbours, and players crossfade over the seams
-(docs/training.md, "Seams").
+--segment-frames is trained as consecutive segments, each in OUT/segments/NN/ (checkpoint.pt, model.stg,
+metrics.json), merged into one OUT/model.stg once every segment is trained; each segment starts from the
+one before it with --segment-schedule warm, and is also fitted to --segment-context frames of its
+neighbours, and players crossfade over the seams (docs/training.md, "Seams").
 
 Defaults, against the paper's reference code (measured in docs/training.md, "Deviations from the
 reference"): the model's formulas, the losses and the densification statistic (each view's
@@ -99,7 +99,7 @@ CONFIG_OPTIONS = {"model": "--model", "iterations": "--iterations", "batch": "--
                   "checkpoint_every": "--checkpoint-every", "guided": "--no-guided", "device": "--device",
                   "splatter": "--splatter", "appearance": "--appearance", "pose_refine": "--pose-refine",
                   "segment_context": "--segment-context", "lens_falloff": "--lens-falloff",
-                  "edge_weight": "--edge-weight"}
+                  "edge_weight": "--edge-weight", "segment_schedule": "--segment-schedule"}
 #: argparse dest -> TrainConfig field, where they differ.
 _DEST_FIELDS = {"points": "num_points", "no_guided": "guided"}
 
@@ -150,6 +150,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "video's own first and last frames twice that: a segment's ends are otherwise its "
                         "weakest frames (1: every frame alike, as the reference; default %(default)s; "
                         "docs/training.md, \"Seams\")")
+    p.add_argument("--segment-schedule", choices=SEGMENT_SCHEDULES, default=d.segment_schedule,
+                   help="how a long video's segments start: warm (each from the previous segment's Gaussians "
+                        "at the seam, re-expressed on its time axis, trained for a quarter of --iterations; "
+                        "the first cold) or independent (each from its own initial points, as the paper); "
+                        "default %(default)s until warm is measured (stg_train.warm). (--segments picks which "
+                        "segments to train.)")
     p.add_argument("--segments", type=_segment_list, default=None, metavar="LIST",
                    help="train only these segments, indices from 0: e.g. 2,3 or 0-2 (default: all); run "
                         "the others elsewhere, copy their OUT/segments/NN folders into OUT/segments, and "
@@ -249,6 +255,7 @@ def _config(args, splatter: str) -> TrainConfig:
     base.motion_init = args.motion_init
     base.appearance, base.pose_refine = args.appearance, args.pose_refine
     base.segment_context, base.edge_weight = args.segment_context, args.edge_weight
+    base.segment_schedule = args.segment_schedule
     base.lens_falloff = args.lens_falloff
     if args.iterations:
         base.iterations = args.iterations
