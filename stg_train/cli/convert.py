@@ -149,8 +149,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--finetune", type=positive_int, default=None, metavar="N",
                    help="with --data: prune, then fine-tune N steps against the training frames before "
                         "quantizing (docs/convert.md, 'Fine-tuning'; needs torch)")
-    c.add_argument("--prune-fraction", type=_unit_fraction, default=0.5, metavar="F",
-                   help="with --finetune: the fraction of least important Gaussians dropped first (default 0.5)")
+    c.add_argument("--prune-fraction", type=_unit_fraction, default=0.3, metavar="F",
+                   help="with --finetune: the fraction of least important Gaussians dropped first (default 0.3)")
 
     r = sub.add_parser("import-reference", formatter_class=fmt,
                        help="import models of the paper's reference implementation (PLY + decoder)",

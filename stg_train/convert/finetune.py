@@ -137,7 +137,7 @@ def _psnr(model: Model, views) -> float:
     return psnr_of_mse(mse(render_views(model, views), views.references))
 
 
-def compress_finetuned(model: Model, dataset, steps: int, preset: str = "web", prune: float = 0.5,
+def compress_finetuned(model: Model, dataset, steps: int, preset: str = "web", prune: float = 0.3,
                        seed: int = 0) -> tuple[Model, Settings, FinetuneInfo]:
     """Prune the `prune` fraction (0-1) of least important Gaussians, fine-tune `steps` steps, and
     compress with `preset` within what is left of its PSNR loss (see the module doc). Returns the
@@ -161,7 +161,7 @@ def compress_finetuned(model: Model, dataset, steps: int, preset: str = "web", p
     return out, settings, info
 
 
-def finetune_file(in_path, out_path, dataset, steps: int, preset: str = "web", prune: float = 0.5,
+def finetune_file(in_path, out_path, dataset, steps: int, preset: str = "web", prune: float = 0.3,
                   seed: int = 0) -> tuple[Report, FinetuneInfo]:
     """Read `in_path`, compress_finetuned it against `dataset`, write `out_path` atomically; the report
     compares with the input file. ValueError (the file named) for a model fine-tuning cannot take."""
