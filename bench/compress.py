@@ -10,6 +10,10 @@ the demo's full model for --iterations steps (the demo's settings otherwise). Th
 model written as the trainer writes it (float32, zlib level 6). Each preset runs twice: with the
 dataset (the error budget from held-out views and the model's PSNR there) and without (the file's
 cameras, model PSNR assumed 33 dB), as `stg-convert compress` with and without --data.
+
+--finetune N (repeatable) adds rows of web with fine-tuning (stg_train.convert.finetune: prune
+--prune of the least important, N steps against the training frames, then web within what is left);
+--only-finetune skips the presets.
 """
 from __future__ import annotations
 
@@ -48,6 +52,11 @@ def main() -> None:
     ap.add_argument("--data", default=os.path.join(tempfile.gettempdir(), "stg-bench-scene"))
     ap.add_argument("--iterations", type=int, default=600, help="training steps when training (default 600)")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--finetune", type=int, action="append", default=[], metavar="N",
+                    help="also web with N fine-tuning steps (repeatable)")
+    ap.add_argument("--prune", type=float, action="append", default=[], metavar="F",
+                    help="fractions pruned before fine-tuning (repeatable; default 0.5)")
+    ap.add_argument("--only-finetune", action="store_true", help="skip the presets' rows")
     ap.add_argument("--out", default=None, help="where the compressed files go (default: a temp folder)")
     args = ap.parse_args()
     ds = load_n3v(ensure_demo_scene(args.data), prefer_png=True)
@@ -61,6 +70,14 @@ def main() -> None:
           f"float32 file {f32} bytes, held-out PSNR {base:.2f} dB ({ds})", flush=True)
     rows = [("float32 (trainer)", f32, sum(s.count for s in model.segments), base, 0.0, 0.0, load_seconds(model_path))]
     runs = [(preset, True) for preset in PRESETS] + [(preset, False) for preset in PRESETS if preset != "lossless"]
+    runs = [] if args.only_finetune else runs
+    if args.threads:
+        import torch
+
+        torch.set_num_threads(args.threads)
+    for steps in args.finetune:
+        for prune in args.prune or [0.5]:
+            rows.append(finetune_row(model_path, ds, out, steps, prune, base))
     for preset, with_data in runs:
         name = preset if with_data else f"{preset}, no --data"
         path = out / f"model.{preset}{'' if with_data else '.nodata'}.stg"
@@ -76,6 +93,23 @@ def main() -> None:
     for name, size, count, psnr, change, seconds, load in rows:
         print(f"| {name} | {size:,} | {size / f32:.3f} (1/{f32 / size:.1f}) | {count:,} | {psnr:.2f} dB | "
               f"{change:+.3f} dB | {seconds:.0f} s | {1000 * load:.0f} ms |")
+
+
+def finetune_row(model_path, ds, out: Path, steps: int, prune: float, base: float) -> tuple:
+    """The table row of web after pruning `prune` and `steps` fine-tuning steps (finetune_file)."""
+    from stg_train.convert.finetune import finetune_file
+
+    path = out / f"model.web.ft{steps}.p{round(100 * prune)}.stg"
+    start = time.perf_counter()
+    report, info = finetune_file(model_path, path, ds, steps, "web", prune)
+    seconds = time.perf_counter() - start
+    print(report.format(), flush=True)
+    print(f"fine-tune: {info.gaussians} -> {info.kept} Gaussians, {steps} steps in {info.seconds:.0f} s, held-out "
+          f"views {info.psnr_original:.2f} -> pruned {info.psnr_pruned:.2f} -> tuned {info.psnr_finetuned:.2f} dB",
+          flush=True)
+    psnr = evaluate_player(Player(path, device="cpu"), ds)["psnr"]
+    return (f"web, prune {prune:g} + fine-tune {steps}", report.file_after, report.gaussians_after, psnr, psnr - base,
+            seconds, load_seconds(path))
 
 
 def load_seconds(path) -> float:

@@ -91,6 +91,13 @@ def _fraction(text: str) -> float:
     return value
 
 
+def _unit_fraction(text: str) -> float:
+    value = _fraction(text)
+    if value >= 1.0:
+        raise argparse.ArgumentTypeError(f"must be below 1, got {text}")
+    return value
+
+
 def _positive_list(kind, what: str):
     """An argument type: one positive `kind` (`what`, plural) or a comma-separated list of them."""
     def parse(text: str) -> list:
@@ -139,6 +146,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "on its held-out camera against the ground truth")
     c.add_argument("--downscale", type=positive_int, default=1, metavar="K",
                    help="with --data: divide the frames' size by K, as in training (default 1)")
+    c.add_argument("--finetune", type=positive_int, default=None, metavar="N",
+                   help="with --data: prune, then fine-tune N steps against the training frames before "
+                        "quantizing (docs/convert.md, 'Fine-tuning'; needs torch)")
+    c.add_argument("--prune-fraction", type=_unit_fraction, default=0.3, metavar="F",
+                   help="with --finetune: the fraction of least important Gaussians dropped first (default 0.3)")
 
     r = sub.add_parser("import-reference", formatter_class=fmt,
                        help="import models of the paper's reference implementation (PLY + decoder)",
@@ -255,9 +267,20 @@ def _compress(args, parser) -> int:
         overrides["order"] = None if args.order == "none" else args.order
     if args.level is not None:
         overrides["level"] = args.level
+    if args.finetune is not None and not args.data:
+        return error(PROG, "--finetune needs --data (the frames to fine-tune against)")
     dataset = None
     if args.data:
         dataset = load_dataset(args.data, downscale=args.downscale)
+    if args.finetune is not None:
+        from ..convert.finetune import finetune_file
+
+        report, info = finetune_file(args.input, args.output, dataset, args.finetune, args.preset,
+                                     args.prune_fraction)
+        print(report.format())
+        print(info.format())
+        print(f"wrote {args.output}")
+        return 0
     report = compress_file(args.input, args.output, args.preset, dataset=dataset, **overrides)
     print(report.format())
     print(f"wrote {args.output}")

@@ -454,7 +454,7 @@ def _with_segments(model: Model, segments: list[Segment]) -> Model:
 def compress(model: Model, preset: str = "balanced", encodings: dict | None = None,
              prune_opacity: float | None | str = "preset", prune_unseen: bool | None = None,
              order: str | None = "preset", level: int | None = None, views: Views | None = None,
-             dataset=None) -> tuple[Model, Settings]:
+             dataset=None, max_loss_db: float | None = None) -> tuple[Model, Settings]:
     """Prune, reorder and choose the precision of `model`'s attributes (the model is not modified);
     returns (compressed model, Settings). Write it with `format.save(model, path, **settings.save_kwargs())`.
 
@@ -464,12 +464,13 @@ def compress(model: Model, preset: str = "balanced", encodings: dict | None = No
     measured); prune_opacity: peak-opacity threshold or None (no pruning); prune_unseen: drop Gaussians
     the file's cameras never see; order: "morton" or None; level: zlib level 0-9. views: where the
     error is measured (default: the dataset's held-out views when `dataset` is given, else
-    model_views). With no views at all, unfixed attributes get DEFAULTS_WITHOUT_VIEWS.
+    model_views). With no views at all, unfixed attributes get DEFAULTS_WITHOUT_VIEWS. max_loss_db:
+    the PSNR loss allowed (dB; default the preset's; finetune passes what fine-tuning left of it).
     The returned model holds the values a reader will decode (snapped to the chosen precision).
     """
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r} (expected one of {', '.join(PRESETS)})")
-    p = PRESETS[preset]
+    p = PRESETS[preset] if max_loss_db is None else replace(PRESETS[preset], max_loss_db=float(max_loss_db))
     prune_opacity = p.prune_opacity if prune_opacity == "preset" else prune_opacity
     prune_unseen = p.prune_unseen if prune_unseen is None else bool(prune_unseen)
     order = p.order if order == "preset" else order

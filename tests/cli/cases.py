@@ -234,6 +234,8 @@ COMPRESS = Command(
          ("--encoding", "size=u8"): "--encoding|size", ("--prune-opacity", "2"): "--prune-opacity",
          ("--prune-opacity", "x"): "--prune-opacity", ("--level", "10"): "--level", ("--level", "x"): "--level",
          ("--data", "{missing}"): "missing", ("--data", "{text}"): "text.txt", ("--downscale", "0"): "--downscale",
+         ("--finetune", "2"): "--data", ("--prune-fraction", "1"): "--prune-fraction",
+         ("--finetune", "0"): "--finetune",
          ("!", "compress", "{model}", "{model}"): "model.stg.*input",
          ("!", "compress", "{model}", "{folder}"): "folder", ("!", "compress", "{model}", "{missing}/x.stg"): "missing",
          ("!", "compress", "{missing}", "{out}.stg"): "missing", ("!", "compress", "{empty}", "{out}.stg"): "empty",

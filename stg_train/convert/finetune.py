@@ -1,0 +1,178 @@
+"""Compression with fine-tuning against the training frames (issue 50, item 4; torch).
+
+    params_of(segment, kind) -> STGParams                        a file segment as trainable raw tensors
+    finetune(model, dataset, steps) -> Model                     N photometric steps on the training cameras
+    compress_finetuned(model, dataset, steps, preset, prune) -> (Model, Settings, FinetuneInfo)
+    finetune_file(in_path, out_path, dataset, steps, preset, prune) -> Report
+
+The recipe measured in docs/convert.md ("Fine-tuning"): drop the `prune` least important Gaussians
+(compress.importance: peak opacity x footprint x time drawn), fine-tune the rest for `steps` steps
+against the training cameras' frames (the trainer's loss, L1 + D-SSIM, Adam at the trainer's rates
+times LR_SCALE, no densification), then compress the result with the preset, whose error budget is
+what is left of the preset's PSNR loss after what pruning and fine-tuning cost on the held-out views
+(measured against the original model's PSNR there). Fine-tuning recovers most of what pruning lost,
+so the file has fewer Gaussians at the same quantisation.
+
+Only one-segment models (what `stg-train` writes for one segment); the decoder is fine-tuned too.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, replace
+
+import numpy as np
+import torch
+
+from stg_runtime import format as stg_format
+from stg_runtime.model import Model, Segment
+from stg_runtime.onnx_mlp import mlp_to_onnx, read_mlp
+
+from ..losses import loss_fn
+from ..params import DecoderMLP, LearningRates, STGParams, extent_of
+from ..raw import to_file_arrays
+from ..render import rasterize, resolve_backend
+from ..trainer import frame_time
+from .compress import (PRESETS, Report, Settings, _with_segments, compress, dataset_views, file_attribute_bytes,
+                       mse, prune_least_important, render_views, report)
+from ..metrics import psnr_of_mse
+
+#: Fine-tuning rates: the trainer's (params.LearningRates, positions at their final rate) times this.
+LR_SCALE = 0.5
+
+
+@dataclass
+class FinetuneInfo:
+    """What fine-tuning did: Gaussians before / after pruning, steps, seconds, and the held-out PSNR
+    (dB, mean over the dataset_views) of the original, the pruned and the fine-tuned model."""
+
+    gaussians: int
+    kept: int
+    steps: int
+    seconds: float
+    psnr_original: float
+    psnr_pruned: float
+    psnr_finetuned: float
+
+    def format(self) -> str:
+        return (f"fine-tune: {self.gaussians} -> {self.kept} Gaussians, {self.steps} steps in {self.seconds:.0f} s; "
+                f"held-out PSNR {self.psnr_original:.2f} dB, pruned {self.psnr_pruned:.2f}, "
+                f"fine-tuned {self.psnr_finetuned:.2f}")
+
+
+def params_of(segment: Segment, kind: str) -> STGParams:
+    """The trainable raw parameters of a file segment (the inverse of raw.to_file_arrays with time
+    scale 1): xyz (N, 3), motion (N, 9), rotation / omega (N, 4), log_scale (N, 3), opacity_logit,
+    t_center, t_scale_raw (N, 1), features (N, 6 full / 3 lite), time_features (N, 3, full)."""
+    n = segment.count
+    f64 = lambda a: np.asarray(a, np.float64)  # noqa: E731
+    pos, rot, feat = f64(segment.position), f64(segment.rotation), f64(segment.features)
+    opacity = np.clip(f64(segment.opacity), 1e-6, 1 - 1e-6)
+    base = 6 if kind == "full" else 3
+    raw = {"xyz": pos[:, 0], "motion": pos[:, 1:4].reshape(n, 9), "rotation": rot[:, 0], "omega": rot[:, 1],
+           "log_scale": np.log(np.maximum(f64(segment.scale), 1e-12)),
+           "opacity_logit": np.log(opacity / (1 - opacity)).reshape(n, 1),
+           "t_center": f64(segment.t_center).reshape(n, 1),
+           "t_scale_raw": -0.5 * np.log(np.maximum(f64(segment.t_scale), 1e-30)).reshape(n, 1),
+           "features": feat[:, :base]}
+    if kind == "full":
+        raw["time_features"] = feat[:, base:base + 3]
+    decoder = None
+    if kind == "full":
+        mlp = read_mlp(segment.decoder)
+        decoder = DecoderMLP(mlp.input_width, mlp.weights[0].shape[0])
+        with torch.no_grad():
+            decoder.layer1.weight.copy_(torch.as_tensor(mlp.weights[0]))
+            decoder.layer2.weight.copy_(torch.as_tensor(mlp.weights[1]))
+    return STGParams({k: torch.as_tensor(v, dtype=torch.float32) for k, v in raw.items()}, kind, decoder=decoder)
+
+
+def _segment_of(params: STGParams, like: Segment) -> Segment:
+    """A file segment of `params` with `like`'s frames and decoder activation."""
+    arrays = to_file_arrays({k: v.detach().cpu().numpy() for k, v in params.raw.items()})
+    decoder = None if params.decoder is None else mlp_to_onnx(params.decoder.weights())
+    return Segment(like.start_frame, like.num_frames, decoder=decoder, activation=like.activation,
+                   context_frames=like.context_frames, **arrays)
+
+
+def _check(model: Model, dataset) -> None:
+    if len(model.segments) != 1:
+        raise ValueError(f"fine-tuning takes a one-segment model, this one has {len(model.segments)}")
+    seg = model.segments[0]
+    if seg.start_frame != 0 or seg.num_frames != dataset.num_frames or any(seg.context_frames):
+        raise ValueError(f"the model covers frames {seg.start_frame}-{seg.start_frame + seg.num_frames - 1}, "
+                         f"the dataset 0-{dataset.num_frames - 1}")
+    if model.kind == "full" and (seg.decoder is None or seg.activation != "sigmoid"):
+        raise ValueError("fine-tuning needs the trainer's decoder (12 -> 6 -> 3, sigmoid)")
+
+
+def finetune(model: Model, dataset, steps: int, seed: int = 0, lr_scale: float = LR_SCALE) -> Model:
+    """`model` (one segment, frames 0..dataset.num_frames-1) after `steps` Adam steps of the trainer's
+    loss on one random training camera and frame each; the Gaussians are neither added nor removed."""
+    _check(model, dataset)
+    seg = model.segments[0]
+    params = params_of(seg, model.kind)
+    lr = LearningRates().scaled(lr_scale)
+    extent = extent_of([dataset.cameras[i] for i in dataset.train_cameras])
+    groups = params.param_groups(replace(lr, xyz_init=lr.xyz_final), extent)
+    optimizer = torch.optim.Adam(groups, eps=1e-15)
+    rng = np.random.default_rng(seed)
+    train = dataset.train_cameras
+    backend = resolve_backend("auto", "cpu")
+    for _ in range(int(steps)):
+        ci, frame = int(train[rng.integers(len(train))]), int(rng.integers(dataset.num_frames))
+        cam = dataset.cameras[ci]
+        g = params.at(frame_time(dataset, frame))
+        out = rasterize(g.means, g.quats, g.scales, g.opacities, g.features, cam, backend=backend)
+        img = params.colour(out.features, cam)
+        gt = torch.from_numpy(dataset.frame(ci, frame)).float() / 255.0
+        loss = loss_fn(img[None], gt[None])
+        loss.backward()
+        optimizer.step()
+        optimizer.zero_grad(set_to_none=True)
+    with torch.no_grad():
+        return _with_segments(model, [_segment_of(params, seg)])
+
+
+def _psnr(model: Model, views) -> float:
+    return psnr_of_mse(mse(render_views(model, views), views.references))
+
+
+def compress_finetuned(model: Model, dataset, steps: int, preset: str = "web", prune: float = 0.3,
+                       seed: int = 0) -> tuple[Model, Settings, FinetuneInfo]:
+    """Prune the `prune` fraction (0-1) of least important Gaussians, fine-tune `steps` steps, and
+    compress with `preset` within what is left of its PSNR loss (see the module doc). Returns the
+    compressed model, its Settings and a FinetuneInfo."""
+    import time
+
+    if preset not in PRESETS or preset == "lossless":
+        raise ValueError(f"fine-tuning takes a lossy preset, not {preset!r}")
+    if not 0.0 <= prune < 1.0:
+        raise ValueError(f"prune must be in [0, 1), got {prune}")
+    _check(model, dataset)
+    views = dataset_views(dataset, model)
+    pruned = _with_segments(model, [prune_least_important(model.segments[0], prune)])
+    start = time.perf_counter()
+    tuned = finetune(pruned, dataset, steps, seed)
+    info = FinetuneInfo(model.segments[0].count, tuned.segments[0].count, int(steps), time.perf_counter() - start,
+                        _psnr(model, views), _psnr(pruned, views), _psnr(tuned, views))
+    spent = max(0.0, info.psnr_original - info.psnr_finetuned)
+    left = max(0.0, PRESETS[preset].max_loss_db - spent)
+    out, settings = compress(tuned, preset, views=views, max_loss_db=left)
+    return out, settings, info
+
+
+def finetune_file(in_path, out_path, dataset, steps: int, preset: str = "web", prune: float = 0.3,
+                  seed: int = 0) -> tuple[Report, FinetuneInfo]:
+    """Read `in_path`, compress_finetuned it against `dataset`, write `out_path` atomically; the report
+    compares with the input file. ValueError (the file named) for a model fine-tuning cannot take."""
+    model = stg_format.load(in_path)
+    try:
+        compressed, settings, info = compress_finetuned(model, dataset, steps, preset, prune, seed)
+    except ValueError as e:
+        raise ValueError(f"{os.fsdecode(in_path)}: {e}") from None
+    compressed.provenance["compress"]["finetune"] = {"steps": int(steps), "prune": float(prune), "seed": int(seed)}
+    rep = report(model, compressed, settings, dataset_views(dataset, model), file_attribute_bytes(in_path),
+                 os.path.getsize(in_path))
+    stg_format.save(compressed, out_path, **settings.save_kwargs())
+    rep.file_after = os.path.getsize(out_path)
+    return rep, info

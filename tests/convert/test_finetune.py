@@ -1,0 +1,83 @@
+"""stg_train.convert.finetune: the raw round trip, fine-tuning raises PSNR, files read back, clear errors."""
+import numpy as np
+import pytest
+
+from stg_runtime import Model, Player, Segment
+from stg_runtime import format as stg_format
+from stg_train.cli.convert import main
+from stg_train.convert.compress import Views, mse, prune_least_important, render_views
+from stg_train.convert.finetune import _segment_of, finetune, finetune_file, params_of
+from stg_train.data import load_dataset
+from stg_train.metrics import psnr_of_mse
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    """(dataset folder, dataset, trained .stg path): 4 cameras x 3 frames, 40x30, 40 training steps."""
+    import torch
+
+    from stg_train.export import export_trainer
+    from stg_train.synthetic import SyntheticScene, write_n3v
+    from stg_train.trainer import TrainConfig, Trainer
+
+    torch.set_num_threads(1)
+    root = tmp_path_factory.mktemp("ft")
+    write_n3v(root / "data", SyntheticScene(seed=0, duration=0.1), num_cameras=4, num_frames=3, fps=30,
+              width=40, height=30)
+    ds = load_dataset(root / "data")
+    trainer = Trainer(ds, TrainConfig(iterations=40, num_points=400, splatter="torch"))
+    trainer.train(progress=False)
+    return root / "data", ds, export_trainer(trainer, root / "model.stg", check=False).path
+
+
+def train_psnr(model: Model, ds) -> float:
+    pairs = [(ds.cameras[c], j / ds.fps) for c in ds.train_cameras for j in range(ds.num_frames)]
+    refs = [ds.image(c, j) for c in ds.train_cameras for j in range(ds.num_frames)]
+    return psnr_of_mse(mse(render_views(model, Views(pairs, refs)), refs))
+
+
+def test_raw_round_trip_is_exact_to_float32(scene):
+    model = stg_format.load(scene[2])
+    seg = model.segments[0]
+    back = _segment_of(params_of(seg, model.kind), seg)
+    for name in ("opacity", "t_center", "t_scale", "position", "rotation", "scale", "features"):
+        np.testing.assert_allclose(getattr(back, name), getattr(seg, name), rtol=1e-5, atol=1e-6)
+    assert back.decoder == seg.decoder
+
+
+def test_finetuning_recovers_what_pruning_lost(scene):
+    _, ds, path = scene
+    model = stg_format.load(path)
+    pruned = Model(model.kind, model.fps, [prune_least_important(model.segments[0], 0.5)], model.cameras,
+                   model.bounds)
+    tuned = finetune(pruned, ds, 30)
+    assert tuned.segments[0].count == pruned.segments[0].count
+    assert train_psnr(tuned, ds) > train_psnr(pruned, ds) + 0.1
+
+
+def test_finetuned_web_file_reads_back_in_the_runtime(scene, tmp_path):
+    _, ds, path = scene
+    rep, info = finetune_file(path, tmp_path / "out.stg", ds, 10, "web", 0.3)
+    player = Player(tmp_path / "out.stg", device="cpu")
+    assert np.isfinite(player.render(ds.cameras[0], 0.0)).all()
+    assert info.kept == stg_format.load(path).segments[0].count - int(0.3 * info.gaussians)
+    assert rep.file_after < rep.file_before and stg_format.load(tmp_path / "out.stg").provenance["compress"]["finetune"]
+
+
+def test_cli_finetune_and_bad_input(scene, tmp_path, capsys):
+    data, ds, path = scene
+    rc = main(["compress", str(path), str(tmp_path / "o.stg"), "--preset", "web", "--data", str(data),
+               "--finetune", "5", "--prune-fraction", "0.2"])
+    out = capsys.readouterr().out
+    assert rc == 0 and "fine-tune" in out and (tmp_path / "o.stg").exists()
+    assert main(["compress", str(path), str(tmp_path / "x.stg"), "--finetune", "5"]) == 2
+    assert "--data" in capsys.readouterr().err
+    model = stg_format.load(path)
+    seg = model.segments[0]
+    later = Segment(seg.num_frames, seg.num_frames, decoder=seg.decoder, activation=seg.activation, **seg.arrays())
+    two = Model(model.kind, model.fps, [seg, later], model.cameras, model.bounds)
+    stg_format.save(two, tmp_path / "two.stg")
+    assert main(["compress", str(tmp_path / "two.stg"), str(tmp_path / "y.stg"), "--data", str(data),
+                 "--finetune", "5"]) == 2
+    err = capsys.readouterr().err
+    assert "two.stg" in err and "one-segment" in err and not (tmp_path / "y.stg").exists()
