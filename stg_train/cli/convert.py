@@ -269,6 +269,9 @@ def _compress(args, parser) -> int:
         overrides["level"] = args.level
     if args.finetune is not None and not args.data:
         return error(PROG, "--finetune needs --data (the frames to fine-tune against)")
+    if args.finetune is not None and (encodings or len(overrides) > 1):
+        return error(PROG, "--finetune takes the preset's settings: --encoding, --prune-opacity, "
+                           "--[no-]prune-unseen, --order and --level are not applied with it")
     dataset = None
     if args.data:
         dataset = load_dataset(args.data, downscale=args.downscale)

@@ -72,6 +72,9 @@ def test_cli_finetune_and_bad_input(scene, tmp_path, capsys):
     assert rc == 0 and "fine-tune" in out and (tmp_path / "o.stg").exists()
     assert main(["compress", str(path), str(tmp_path / "x.stg"), "--finetune", "5"]) == 2
     assert "--data" in capsys.readouterr().err
+    assert main(["compress", str(path), str(tmp_path / "x.stg"), "--data", str(data), "--finetune", "5",
+                 "--level", "6"]) == 2
+    assert "--level" in capsys.readouterr().err and not (tmp_path / "x.stg").exists()
     model = stg_format.load(path)
     seg = model.segments[0]
     later = Segment(seg.num_frames, seg.num_frames, decoder=seg.decoder, activation=seg.activation, **seg.arrays())
