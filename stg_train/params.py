@@ -63,8 +63,9 @@ class Gaussians(NamedTuple):
     features: Tensor
 
 
-def temporal_opacity(raw: dict[str, Tensor], tau: float) -> Tensor:
-    """(N,) sigmoid(opacity_logit) * exp(-((tau - t_center) / exp(t_scale_raw))^2), differentiable in all three."""
+def temporal_opacity(raw: dict[str, Tensor], tau: float | Tensor) -> Tensor:
+    """(N,) sigmoid(opacity_logit) * exp(-((tau - t_center) / exp(t_scale_raw))^2), differentiable in all three;
+    tau: one time, or (N,) one per Gaussian."""
     dt = tau - raw["t_center"].reshape(-1)
     s_t = torch.exp(raw["t_scale_raw"].reshape(-1))
     return torch.sigmoid(raw["opacity_logit"].reshape(-1)) * torch.exp(-(dt / s_t) ** 2)

@@ -26,9 +26,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .choices import SEGMENT_SCHEDULES  # noqa: F401 (TrainConfig.segment_schedule's values)
-from .params import STGParams
-from .segments import Span
+from .params import STGParams, temporal_opacity
+from .segments import SegmentError, Span
+
 #: A warm segment drops the carried Gaussians whose opacity stays below this over its frames (the
 #: density control's pruning threshold, strategy.density.Thresholds.prune_opacity).
 PAST_OPACITY = 0.005
@@ -71,11 +71,8 @@ def past_gaussians(raw: dict[str, Tensor], lo: float, hi: float, floor: float = 
     """(N,) bool: the Gaussians whose opacity sigmoid(opacity_logit) exp(-((tau - t_center) / s)^2)
     stays below `floor` for every tau in [lo, hi] (its largest value there is at the clamp of t_center
     into [lo, hi])."""
-    c = raw["t_center"].detach().reshape(-1)
-    s = torch.exp(raw["t_scale_raw"].detach().reshape(-1))
-    nearest = c.clamp(lo, hi)
-    peak = torch.sigmoid(raw["opacity_logit"].detach().reshape(-1)) * torch.exp(-((nearest - c) / s) ** 2)
-    return peak < floor
+    raw = {k: raw[k].detach() for k in ("opacity_logit", "t_center", "t_scale_raw")}
+    return temporal_opacity(raw, raw["t_center"].reshape(-1).clamp(lo, hi)) < floor
 
 
 class WarmStart(NamedTuple):
@@ -95,13 +92,14 @@ def warm_start(checkpoint: Path, prev: Span, span: Span, context: tuple[int, int
     """The start of segment `span` from the checkpoint of the segment `prev` before it (a finished
     run's OUT/segments/NN/checkpoint.pt): its parameters rebased onto span's axis (rebase_time,
     axis_map), those past the new segment's frames and its `context` (before, after) frames dropped
-    (past_gaussians over tau in [-before / n, 1 + after / n]). Raises ValueError for an unreadable
+    (past_gaussians over tau in [-before / n, 1 + after / n]). Raises SegmentError for an unreadable
     checkpoint (naming it)."""
     try:
         state = torch.load(checkpoint, map_location="cpu", weights_only=True)
         saved = state["params"]
-    except (OSError, RuntimeError, KeyError, EOFError) as e:
-        raise ValueError(f"{checkpoint}: cannot warm-start from it ({e})") from None
+    except Exception as e:  # torch raises RuntimeError, UnpicklingError, EOFError, ... for bad files
+        first = str(e).splitlines()[0] if str(e) else ""
+        raise SegmentError(f"{checkpoint}: cannot warm-start from it ({type(e).__name__}: {first})") from None
     a, b = axis_map(prev, span)
     raw = rebase_time(saved["raw"], a, b, saved.get("frozen", ()))
     before, after = context
@@ -133,7 +131,7 @@ def start_of(out: Path, plan: list[Span], index: int, config, device="cpu") -> W
     finished with its checkpoint in its folder (trained elsewhere, or not yet)."""
     from .segments import context_of, finished, segment_dir
 
-    if config.segment_schedule != "warm" or chain_head(index, getattr(config, "warm_chain", 0)):
+    if config.segment_schedule != "warm" or chain_head(index, config.warm_chain):
         return None
     prev = segment_dir(out, index - 1, len(plan))
     if not finished(prev, plan[index - 1]) or not (prev / "checkpoint.pt").exists():

@@ -97,3 +97,14 @@ def test_a_killed_warm_chain_resumes_where_it_stopped(synthetic_n3v, tmp_path, m
     for sa, sb in zip(a.segments, b.segments):
         for name, arr in sa.arrays().items():
             np.testing.assert_array_equal(arr, getattr(sb, name), err_msg=name)
+
+
+def test_an_unreadable_predecessor_checkpoint_is_a_segment_error(tmp_path):
+    """A broken checkpoint of the segment before stops the run with its name (stg-train: exit 2)."""
+    from stg_train.segments import SegmentError, Span
+    from stg_train.warm import warm_start
+
+    broken = tmp_path / "checkpoint.pt"
+    broken.write_bytes(b"not a checkpoint")
+    with pytest.raises(SegmentError, match="checkpoint.pt: cannot warm-start"):
+        warm_start(broken, Span(0, 0, 10), Span(1, 10, 10), (0, 0))
