@@ -12,6 +12,45 @@ import stg_train  # noqa: F401
 SIMULATOR = os.environ.get("NUMBA_ENABLE_CUDASIM") == "1"
 
 
+def _share_simulated_arrays_safely() -> None:
+    """Make numba's simulated cuda.shared.array safe for the threads of a block.
+
+    The simulator runs each CUDA thread of a block as a Python thread. It finds a block's shared array
+    in a dict keyed by the calling line, but without a lock. Two threads that both miss create two
+    arrays, and then the threads of the first block no longer share memory. The picture of the test
+    comes out wrong (seen once in CI, tile 0 of test_player_cuda_matches_cpu). Our short GIL switch
+    interval (below) makes this more likely. Here the look-up and the insertion are one locked step,
+    with the same key (file, line)."""
+    import threading
+
+    import numpy as np
+    from numba.core import types
+    from numba.cuda.simulator import kernelapi
+    from numba.np import numpy_support
+
+    dynamic = kernelapi.FakeCUDAShared.array
+    lock = threading.Lock()
+
+    def array(self, shape, dtype):
+        if shape == 0:  # dynamic shared memory: one buffer, no look-up
+            return dynamic(self, shape, dtype)
+        if isinstance(dtype, types.Type):
+            dtype = numpy_support.as_dtype(dtype)
+        caller = sys._getframe(1)
+        key = (caller.f_code.co_filename, caller.f_lineno)
+        with lock:
+            found = self._allocations.get(key)
+            if found is None:
+                found = self._allocations[key] = np.empty(shape, dtype)
+        return found
+
+    kernelapi.FakeCUDAShared.array = array
+
+
+if SIMULATOR:
+    _share_simulated_arrays_safely()
+
+
 @pytest.fixture(scope="module")
 def two_torch_threads():
     """At most two torch threads for a module's training tests (use with pytest.mark.usefixtures)."""
