@@ -38,6 +38,7 @@ from stg_runtime.camera import orbit
 from stg_runtime.player import Player
 from stg_runtime.progress import progress_stages
 
+from .checkpoint import CheckpointError, read_checkpoint
 from .config import DEMO_SCENE, DEMO_TRAINING  # noqa: F401 (re-exported: the benchmarks use them)
 from .convert.merge import merge_files
 from .data import DataError, load_dataset
@@ -273,9 +274,10 @@ def _run_training(trainer: Trainer, ckpt: Path, quiet: bool, callback, stop_on_s
 def _resume(dataset, ckpt: Path, out: Path, config: TrainConfig, given: dict[str, str], quiet: bool) -> Trainer:
     """Trainer.resume with the RESUMABLE settings the user gave applied (said on stderr); ResumeConflict
     for another given setting that differs from the checkpoint's."""
-    import torch
-
-    saved = TrainConfig.from_dict(torch.load(ckpt, map_location="cpu", weights_only=True)["config"])
+    try:
+        saved = TrainConfig.from_dict(read_checkpoint(ckpt)["config"])
+    except CheckpointError as e:
+        raise ResumeConflict(f"{e}: start afresh with --force or a new --out") from None
     changes, notes = {}, []
     for name, option in sorted(given.items()):
         new, old = getattr(config, name), getattr(saved, name)

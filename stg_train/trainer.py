@@ -27,6 +27,7 @@ from stg_runtime.atomic import atomic_output, remove_leftovers
 from stg_runtime.camera import Camera
 from stg_runtime.progress import Progress
 
+from .checkpoint import read_checkpoint
 from .data.flow import initial_velocity
 from .config import MOTION_INITS, TrainConfig  # noqa: F401 (TrainConfig's home is config; re-exported)
 from .data.points import InitialPoints, initial_points
@@ -349,8 +350,9 @@ class Trainer:
                changes: dict | None = None) -> "Trainer":
         """Continue the run saved in checkpoint `path` (its settings win; `device` and `splatter` may
         move it to another device or rasteriser backend; `changes`, TrainConfig fields, replace others:
-        the caller decides which may change mid-run, as stg_train.pipeline does)."""
-        state = torch.load(path, map_location="cpu", weights_only=True)
+        the caller decides which may change mid-run, as stg_train.pipeline does). ValueError (the
+        checkpoint's CheckpointError among them) naming the file when it cannot be continued."""
+        state = read_checkpoint(path)
         if state.get("version") != CHECKPOINT_VERSION:
             raise ValueError(f"{path}: checkpoint version {state.get('version')} is not {CHECKPOINT_VERSION}")
         if any(getattr(dataset, "context_frames", (0, 0))) and state.get("time") != TIME_AXIS:

@@ -26,6 +26,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .checkpoint import CheckpointError, read_checkpoint
 from .params import STGParams, temporal_opacity
 from .segments import SegmentError, Span
 
@@ -95,11 +96,11 @@ def warm_start(checkpoint: Path, prev: Span, span: Span, context: tuple[int, int
     (past_gaussians over tau in [-before / n, 1 + after / n]). Raises SegmentError for an unreadable
     checkpoint (naming it)."""
     try:
-        state = torch.load(checkpoint, map_location="cpu", weights_only=True)
-        saved = state["params"]
-    except Exception as e:  # torch raises RuntimeError, UnpicklingError, EOFError, ... for bad files
-        first = str(e).splitlines()[0] if str(e) else ""
-        raise SegmentError(f"{checkpoint}: cannot warm-start from it ({type(e).__name__}: {first})") from None
+        state = read_checkpoint(checkpoint)
+    except CheckpointError as e:
+        raise SegmentError(f"{e}: the next segment's warm start needs it (retrain that segment, or use "
+                           "--segment-schedule independent)") from None
+    saved = state["params"]
     a, b = axis_map(prev, span)
     raw = rebase_time(saved["raw"], a, b, saved.get("frozen", ()))
     before, after = context

@@ -188,6 +188,21 @@ def test_cli_resume_continues(scene_dir, tmp_path):
     assert not any(path.exists() for path in killed)
 
 
+def test_cli_resume_of_a_broken_checkpoint_names_it(scene_dir, tmp_path, capsys):
+    """--resume over a checkpoint.pt that is not one: exit 2, one line naming the file, nothing written."""
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "checkpoint.pt").write_bytes(b"not a checkpoint")
+    code = train_main([str(scene_dir), "--out", str(out), "--iterations", "2", "--quiet", "--resume"])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert f"{out / 'checkpoint.pt'}: not a readable checkpoint" in err and "--force" in err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert sorted(p.name for p in out.iterdir()) == ["checkpoint.pt"]
+    with pytest.raises(ValueError, match="checkpoint.pt: not a readable checkpoint"):
+        Trainer.resume(load_n3v(scene_dir), out / "checkpoint.pt")
+
+
 def _bad(tmp_path, scene_dir, what):
     import shutil
 

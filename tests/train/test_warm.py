@@ -106,5 +106,5 @@ def test_an_unreadable_predecessor_checkpoint_is_a_segment_error(tmp_path):
 
     broken = tmp_path / "checkpoint.pt"
     broken.write_bytes(b"not a checkpoint")
-    with pytest.raises(SegmentError, match="checkpoint.pt: cannot warm-start"):
+    with pytest.raises(SegmentError, match="checkpoint.pt: not a readable checkpoint.*warm start needs it"):
         warm_start(broken, Span(0, 0, 10), Span(1, 10, 10), (0, 0))
