@@ -662,7 +662,7 @@ def _tighten(pick: dict, groups: list, width: dict, options: tuple, total: float
             error = error_of(trial)
             if error <= budget:
                 saved = (_stored_bits(options[pick[k]]) - _stored_bits(options[pick[k] - 1])) * width[k]
-                steps.append((saved / max(error - total, 1e-12 * budget), k, error))
+                steps.append((saved / max(error - total, 1e-12 * budget, 1e-30), k, error))
         if not steps:
             return total
         _, k, total = max(steps, key=lambda step: step[0])
