@@ -18,7 +18,7 @@ Only one-segment models (what `stg-train` writes for one segment); the decoder i
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -39,8 +39,8 @@ from .qat import gaussians_of_file, lowered, quantised_tensors, snapped_segment
 
 #: Fine-tuning rates: the trainer's (params.LearningRates, positions at their final rate) times this.
 LR_SCALE = 0.5
-#: Quantisation-aware steps' rates: the trainer's times this.
-QAT_LR_SCALE = 0.5
+#: Quantisation-aware steps' rates: the trainer's times this (0.5 and 0.2 lost 0.1-0.4 dB more, docs).
+QAT_LR_SCALE = 0.05
 #: Quantisation-aware fine-tuning renders at the first search's bits this many options lower.
 QAT_LOWER = 1
 
@@ -60,6 +60,7 @@ class FinetuneInfo:
     quantised_steps: int = 0
     psnr_quantised: float | None = None
     quantised_kept: bool = False
+    candidates: list = field(default_factory=list)
 
     def format(self) -> str:
         return (f"fine-tune: {self.gaussians} -> {self.kept} Gaussians, {self.steps} steps in {self.seconds:.0f} s; "
@@ -67,7 +68,9 @@ class FinetuneInfo:
                 f"fine-tuned {self.psnr_finetuned:.2f}"
                 + ("" if not self.quantised_steps else
                    f"; {self.quantised_steps} quantisation-aware steps: {self.psnr_quantised:.2f} dB, "
-                   f"{'kept' if self.quantised_kept else 'not kept (the first search was smaller)'}"))
+                   f"searched again: {self.candidates[1][0]} bytes at {self.candidates[1][1]:.2f} dB against "
+                   f"{self.candidates[0][0]} at {self.candidates[0][1]:.2f} first, "
+                   f"{'kept' if self.quantised_kept else 'not kept'}"))
 
 
 def params_of(segment: Segment, kind: str) -> STGParams:
@@ -212,7 +215,8 @@ def _requantised(out: Model, settings: Settings, dataset, views, steps: int, pre
     QAT_LOWER options lower; finetune_quantised, `steps` steps), then the preset's search again on
     the quantised values without further pruning, within what is left of the preset's loss (held-out
     views against info.psnr_original). Returns the smaller of the two within the loss (else the one
-    with the higher PSNR); info records the quantised model's PSNR and which one was kept."""
+    with the higher PSNR); info records the quantised model's PSNR, both (bytes, PSNR) and which one
+    was kept."""
     import time
 
     start = time.perf_counter()
@@ -226,8 +230,10 @@ def _requantised(out: Model, settings: Settings, dataset, views, steps: int, pre
     info.seconds += time.perf_counter() - start
     candidates = []
     for m, s in ((out, settings), (again, again_settings)):
-        loss_db = info.psnr_original - _psnr(m, views)
-        candidates.append((loss_db > loss, _file_bytes(m, s) if loss_db <= loss else loss_db, m, s))
+        size, psnr = _file_bytes(m, s), _psnr(m, views)
+        info.candidates.append((size, psnr))
+        loss_db = info.psnr_original - psnr
+        candidates.append((loss_db > loss, size if loss_db <= loss else loss_db, m, s))
     best = min(range(2), key=lambda i: candidates[i][:2])
     info.quantised_kept = best == 1
     return candidates[best][2], candidates[best][3]
