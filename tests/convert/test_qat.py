@@ -72,12 +72,12 @@ def test_quantisation_aware_finetuning_beats_quantising_afterwards(scene):
     _, ds, path = scene
     model = stg_format.load(path)
     bits = {"position": [5, 3, 2, 1], "rotation": [3, 1], "scale": [3], "features": [3, 2, 1], "opacity": [3]}
-    tuned = finetune(model, ds, 30)
+    tuned = finetune(model, ds, 60, lr_scale=0.5)  # the same steps and rates both ways
     after = Model(model.kind, model.fps, [quantized(tuned.segments[0], {k: ("compact", b) for k, b in bits.items()},
                                                     model.kind)], model.cameras, model.bounds)
-    aware = finetune_quantised(model, ds, 30, bits)
+    aware = finetune_quantised(model, ds, 60, bits, lr_scale=0.5)
     assert aware.segments[0].count == model.segments[0].count
-    assert train_psnr(aware, ds) > train_psnr(after, ds) + 0.3
+    assert train_psnr(aware, ds) > train_psnr(after, ds) + 0.3  # measured 24.82 against 24.12 dB
 
 
 def test_finetune_file_with_quantised_steps(scene, tmp_path):
