@@ -2,8 +2,9 @@
 
     params_of(segment, kind) -> STGParams                        a file segment as trainable raw tensors
     finetune(model, dataset, steps) -> Model                     N photometric steps on the training cameras
-    compress_finetuned(model, dataset, steps, preset, prune) -> (Model, Settings, FinetuneInfo)
-    finetune_file(in_path, out_path, dataset, steps, preset, prune) -> Report
+    finetune_quantised(model, dataset, steps, bits) -> Model     the same through fake quantisation (qat.py)
+    compress_finetuned(model, dataset, steps, preset, prune, quantised_steps=0) -> (Model, Settings, FinetuneInfo)
+    finetune_file(in_path, out_path, dataset, steps, preset, prune, quantised_steps=0) -> (Report, FinetuneInfo)
 
 The recipe measured in docs/convert.md ("Fine-tuning"): drop the `prune` least important Gaussians
 (compress.importance: peak opacity x footprint x time drawn), fine-tune the rest for `steps` steps
@@ -11,7 +12,9 @@ against the training cameras' frames (the trainer's loss, L1 + D-SSIM, Adam at t
 times LR_SCALE, no densification), then compress the result with the preset, whose error budget is
 what is left of the preset's PSNR loss after what pruning and fine-tuning cost on the held-out views
 (measured against the original model's PSNR there). Fine-tuning recovers most of what pruning lost,
-so the file has fewer Gaussians at the same quantisation.
+so the file has fewer Gaussians at the same quantisation. With quantised_steps, the compressed model
+is then fine-tuned through straight-through fake quantisation one option below the bits chosen
+(QAT_LOWER) and searched again without pruning; the smaller file within the loss is kept.
 
 Only one-segment models (what `stg-train` writes for one segment); the decoder is fine-tuned too.
 """
