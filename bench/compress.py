@@ -13,7 +13,9 @@ cameras, model PSNR assumed 33 dB), as `stg-convert compress` with and without -
 
 --finetune N (repeatable) adds rows of web with fine-tuning (stg_train.convert.finetune: prune
 --prune of the least important, N steps against the training frames, then web within what is left);
---only-finetune skips the presets.
+--only-finetune skips the presets. --finetune-quantised M (repeatable) then fine-tunes M more steps
+through fake quantisation below the bits web chose and searches again (stg-convert compress
+--finetune-quantised M).
 """
 from __future__ import annotations
 
@@ -56,6 +58,8 @@ def main() -> None:
                     help="also web with N fine-tuning steps (repeatable)")
     ap.add_argument("--prune", type=float, action="append", default=[], metavar="F",
                     help="fractions pruned before fine-tuning (repeatable; default 0.5)")
+    ap.add_argument("--finetune-quantised", type=int, action="append", default=[], metavar="M",
+                    help="with --finetune: quantisation-aware steps after it (repeatable; default 0)")
     ap.add_argument("--only-finetune", action="store_true", help="skip the presets' rows")
     ap.add_argument("--out", default=None, help="where the compressed files go (default: a temp folder)")
     args = ap.parse_args()
@@ -77,7 +81,8 @@ def main() -> None:
         torch.set_num_threads(args.threads)
     for steps in args.finetune:
         for prune in args.prune or [0.5]:
-            rows.append(finetune_row(model_path, ds, out, steps, prune, base))
+            for quantised in args.finetune_quantised or [0]:
+                rows.append(finetune_row(model_path, ds, out, steps, prune, base, quantised))
     for preset, with_data in runs:
         name = preset if with_data else f"{preset}, no --data"
         path = out / f"model.{preset}{'' if with_data else '.nodata'}.stg"
@@ -95,20 +100,20 @@ def main() -> None:
               f"{change:+.3f} dB | {seconds:.0f} s | {1000 * load:.0f} ms |")
 
 
-def finetune_row(model_path, ds, out: Path, steps: int, prune: float, base: float) -> tuple:
-    """The table row of web after pruning `prune` and `steps` fine-tuning steps (finetune_file)."""
+def finetune_row(model_path, ds, out: Path, steps: int, prune: float, base: float, quantised: int = 0) -> tuple:
+    """The table row of web after pruning `prune`, `steps` fine-tuning steps and `quantised`
+    quantisation-aware ones (finetune_file)."""
     from stg_train.convert.finetune import finetune_file
 
-    path = out / f"model.web.ft{steps}.p{round(100 * prune)}.stg"
+    path = out / f"model.web.ft{steps}.p{round(100 * prune)}.q{quantised}.stg"
     start = time.perf_counter()
-    report, info = finetune_file(model_path, path, ds, steps, "web", prune)
+    report, info = finetune_file(model_path, path, ds, steps, "web", prune, quantised_steps=quantised)
     seconds = time.perf_counter() - start
     print(report.format(), flush=True)
-    print(f"fine-tune: {info.gaussians} -> {info.kept} Gaussians, {steps} steps in {info.seconds:.0f} s, held-out "
-          f"views {info.psnr_original:.2f} -> pruned {info.psnr_pruned:.2f} -> tuned {info.psnr_finetuned:.2f} dB",
-          flush=True)
+    print(info.format(), flush=True)
     psnr = evaluate_player(Player(path, device="cpu"), ds)["psnr"]
-    return (f"web, prune {prune:g} + fine-tune {steps}", report.file_after, report.gaussians_after, psnr, psnr - base,
+    name = f"web, prune {prune:g} + fine-tune {steps}" + (f" + quantised {quantised}" if quantised else "")
+    return (name, report.file_after, report.gaussians_after, psnr, psnr - base,
             seconds, load_seconds(path))
 
 

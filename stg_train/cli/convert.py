@@ -151,6 +151,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "quantizing (docs/convert.md, 'Fine-tuning'; needs torch)")
     c.add_argument("--prune-fraction", type=_unit_fraction, default=0.3, metavar="F",
                    help="with --finetune: the fraction of least important Gaussians dropped first (default 0.3)")
+    c.add_argument("--finetune-quantised", type=positive_int, default=None, metavar="M",
+                   help="with --finetune: then fine-tune M more steps through fake quantisation one step "
+                        "below the bits the preset chose and search again; the smaller file within the "
+                        "preset's loss is written (docs/convert.md, 'Fine-tuning')")
 
     r = sub.add_parser("import-reference", formatter_class=fmt,
                        help="import models of the paper's reference implementation (PLY + decoder)",
@@ -267,6 +271,8 @@ def _compress(args, parser) -> int:
         overrides["order"] = None if args.order == "none" else args.order
     if args.level is not None:
         overrides["level"] = args.level
+    if args.finetune_quantised is not None and args.finetune is None:
+        return error(PROG, "--finetune-quantised needs --finetune (and --data)")
     if args.finetune is not None and not args.data:
         return error(PROG, "--finetune needs --data (the frames to fine-tune against)")
     if args.finetune is not None and (encodings or len(overrides) > 1):
@@ -279,7 +285,7 @@ def _compress(args, parser) -> int:
         from ..convert.finetune import finetune_file
 
         report, info = finetune_file(args.input, args.output, dataset, args.finetune, args.preset,
-                                     args.prune_fraction)
+                                     args.prune_fraction, quantised_steps=args.finetune_quantised or 0)
         print(report.format())
         print(info.format())
         print(f"wrote {args.output}")

@@ -454,7 +454,8 @@ def _with_segments(model: Model, segments: list[Segment]) -> Model:
 def compress(model: Model, preset: str = "balanced", encodings: dict | None = None,
              prune_opacity: float | None | str = "preset", prune_unseen: bool | None = None,
              order: str | None = "preset", level: int | None = None, views: Views | None = None,
-             dataset=None, max_loss_db: float | None = None) -> tuple[Model, Settings]:
+             dataset=None, max_loss_db: float | None = None,
+             prune_importance: bool = True) -> tuple[Model, Settings]:
     """Prune, reorder and choose the precision of `model`'s attributes (the model is not modified);
     returns (compressed model, Settings). Write it with `format.save(model, path, **settings.save_kwargs())`.
 
@@ -466,6 +467,8 @@ def compress(model: Model, preset: str = "balanced", encodings: dict | None = No
     error is measured (default: the dataset's held-out views when `dataset` is given, else
     model_views). With no views at all, unfixed attributes get DEFAULTS_WITHOUT_VIEWS. max_loss_db:
     the PSNR loss allowed (dB; default the preset's; finetune passes what fine-tuning left of it).
+    prune_importance: False keeps a compact preset from dropping the least important Gaussians
+    (quantisation-aware fine-tuning, whose per-channel ranges must stay those it trained with).
     The returned model holds the values a reader will decode (snapped to the chosen precision).
     """
     if preset not in PRESETS:
@@ -509,7 +512,7 @@ def compress(model: Model, preset: str = "balanced", encodings: dict | None = No
         free = []
     choices = dict(fixed)
     if free:
-        found, pruned = _search(model, pruned, views, fixed, free, p, settings)
+        found, pruned = _search(model, pruned, views, fixed, free, p, settings, prune_importance)
         choices.update(found)
     out = quantized_model(pruned, choices)
     settings.encodings = {name: _encoding(out, name, choices[name], level) for name in ATTRIBUTES}
@@ -539,7 +542,7 @@ DEFAULTS_WITHOUT_VIEWS["web"] = DEFAULTS_WITHOUT_VIEWS["small"]
 
 
 def _search(original: Model, pruned: Model, views: Views, fixed: dict, free: list, preset: Preset,
-            settings: Settings) -> dict:
+            settings: Settings, prune_importance: bool = True) -> dict:
     """The cheapest precision per channel group of the `free` attributes within the preset's budget.
 
     The budget is the MSE against the uncompressed render that costs SAFETY x preset.max_loss_db of
@@ -552,7 +555,7 @@ def _search(original: Model, pruned: Model, views: Views, fixed: dict, free: lis
     model_mse = (mse(before, views.references) if views.references is not None
                  else 10.0 ** (-preset.assumed_psnr / 10.0))
     budget = budget_mse(SAFETY * preset.max_loss_db, model_mse)
-    if preset.compact:
+    if preset.compact and prune_importance:
         pruned = _prune_within(pruned, views, before, PRUNE_SHARE * budget, settings)
     reference = render_views(pruned, views)
     base = mse(reference, before)  # what pruning (and reordering: ties in depth) changed
@@ -659,7 +662,7 @@ def _tighten(pick: dict, groups: list, width: dict, options: tuple, total: float
             error = error_of(trial)
             if error <= budget:
                 saved = (_stored_bits(options[pick[k]]) - _stored_bits(options[pick[k] - 1])) * width[k]
-                steps.append((saved / max(error - total, 1e-12 * budget), k, error))
+                steps.append((saved / max(error - total, 1e-12 * budget, 1e-30), k, error))
         if not steps:
             return total
         _, k, total = max(steps, key=lambda step: step[0])

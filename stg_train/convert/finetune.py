@@ -2,8 +2,9 @@
 
     params_of(segment, kind) -> STGParams                        a file segment as trainable raw tensors
     finetune(model, dataset, steps) -> Model                     N photometric steps on the training cameras
-    compress_finetuned(model, dataset, steps, preset, prune) -> (Model, Settings, FinetuneInfo)
-    finetune_file(in_path, out_path, dataset, steps, preset, prune) -> Report
+    finetune_quantised(model, dataset, steps, bits) -> Model     the same through fake quantisation (qat.py)
+    compress_finetuned(model, dataset, steps, preset, prune, quantised_steps=0) -> (Model, Settings, FinetuneInfo)
+    finetune_file(in_path, out_path, dataset, steps, preset, prune, quantised_steps=0) -> (Report, FinetuneInfo)
 
 The recipe measured in docs/convert.md ("Fine-tuning"): drop the `prune` least important Gaussians
 (compress.importance: peak opacity x footprint x time drawn), fine-tune the rest for `steps` steps
@@ -11,14 +12,16 @@ against the training cameras' frames (the trainer's loss, L1 + D-SSIM, Adam at t
 times LR_SCALE, no densification), then compress the result with the preset, whose error budget is
 what is left of the preset's PSNR loss after what pruning and fine-tuning cost on the held-out views
 (measured against the original model's PSNR there). Fine-tuning recovers most of what pruning lost,
-so the file has fewer Gaussians at the same quantisation.
+so the file has fewer Gaussians at the same quantisation. With quantised_steps, the compressed model
+is then fine-tuned through straight-through fake quantisation one option below the bits chosen
+(QAT_LOWER) and searched again without pruning; the smaller file within the loss is kept.
 
 Only one-segment models (what `stg-train` writes for one segment); the decoder is fine-tuned too.
 """
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -35,9 +38,14 @@ from ..trainer import frame_time
 from .compress import (PRESETS, Report, Settings, _with_segments, compress, dataset_views, file_attribute_bytes,
                        mse, prune_least_important, render_views, report)
 from ..metrics import psnr_of_mse
+from .qat import gaussians_of_file, lowered, quantised_tensors, snapped_segment
 
 #: Fine-tuning rates: the trainer's (params.LearningRates, positions at their final rate) times this.
 LR_SCALE = 0.5
+#: Quantisation-aware steps' rates: the trainer's times this (0.5 and 0.2 lost 0.1-0.4 dB more, docs).
+QAT_LR_SCALE = 0.05
+#: Quantisation-aware fine-tuning renders at the first search's bits this many options lower.
+QAT_LOWER = 1
 
 
 @dataclass
@@ -52,11 +60,20 @@ class FinetuneInfo:
     psnr_original: float
     psnr_pruned: float
     psnr_finetuned: float
+    quantised_steps: int = 0
+    psnr_quantised: float | None = None
+    quantised_kept: bool = False
+    candidates: list = field(default_factory=list)
 
     def format(self) -> str:
         return (f"fine-tune: {self.gaussians} -> {self.kept} Gaussians, {self.steps} steps in {self.seconds:.0f} s; "
                 f"held-out PSNR {self.psnr_original:.2f} dB, pruned {self.psnr_pruned:.2f}, "
-                f"fine-tuned {self.psnr_finetuned:.2f}")
+                f"fine-tuned {self.psnr_finetuned:.2f}"
+                + ("" if not self.quantised_steps else
+                   f"; {self.quantised_steps} quantisation-aware steps: {self.psnr_quantised:.2f} dB, "
+                   f"searched again: {self.candidates[1][0]} bytes at {self.candidates[1][1]:.2f} dB against "
+                   f"{self.candidates[0][0]} at {self.candidates[0][1]:.2f} first, "
+                   f"{'kept' if self.quantised_kept else 'not kept'}"))
 
 
 def params_of(segment: Segment, kind: str) -> STGParams:
@@ -111,6 +128,30 @@ def finetune(model: Model, dataset, steps: int, seed: int = 0, lr_scale: float =
     _check(model, dataset)
     seg = model.segments[0]
     params = params_of(seg, model.kind)
+    _tune(params, dataset, steps, seed, lr_scale)
+    with torch.no_grad():
+        return _with_segments(model, [_segment_of(params, seg)])
+
+
+def finetune_quantised(model: Model, dataset, steps: int, bits: dict, seed: int = 0,
+                       lr_scale: float = QAT_LR_SCALE) -> Model:
+    """`model` after `steps` fine-tuning steps (as finetune) that render it through straight-through
+    fake quantisation at `bits` ({attribute: [COMPACT_OPTIONS entry per channel group]}, as
+    compress's Settings.bits; stg_train.convert.qat); the returned model holds the quantised values
+    (what the web writer stores at those bits), the decoder in float."""
+    _check(model, dataset)
+    seg = model.segments[0]
+    params = params_of(seg, model.kind)
+    _tune(params, dataset, steps, seed, lr_scale, bits, seg)
+    with torch.no_grad():
+        decoder = None if params.decoder is None else mlp_to_onnx(params.decoder.weights())
+        return _with_segments(model, [snapped_segment(params.raw, bits, seg, model.kind, decoder)])
+
+
+def _tune(params: STGParams, dataset, steps: int, seed: int, lr_scale: float, bits: dict | None = None,
+          like: Segment | None = None) -> None:
+    """`steps` Adam steps on `params` (in place): the trainer's loss on one random training camera and
+    frame each, rendered through fake quantisation at `bits` (segment layout `like`) when given."""
     lr = LearningRates().scaled(lr_scale)
     extent = extent_of([dataset.cameras[i] for i in dataset.train_cameras])
     groups = params.param_groups(replace(lr, xyz_init=lr.xyz_final), extent)
@@ -121,7 +162,11 @@ def finetune(model: Model, dataset, steps: int, seed: int = 0, lr_scale: float =
     for _ in range(int(steps)):
         ci, frame = int(train[rng.integers(len(train))]), int(rng.integers(dataset.num_frames))
         cam = dataset.cameras[ci]
-        g = params.at(frame_time(dataset, frame))
+        tau = frame_time(dataset, frame)
+        if bits is None:
+            g = params.at(tau)
+        else:
+            g = gaussians_of_file(quantised_tensors(params.raw, bits, like, params.kind), tau)
         out = rasterize(g.means, g.quats, g.scales, g.opacities, g.features, cam, backend=backend)
         img = params.colour(out.features, cam)
         gt = torch.from_numpy(dataset.frame(ci, frame)).float() / 255.0
@@ -129,8 +174,6 @@ def finetune(model: Model, dataset, steps: int, seed: int = 0, lr_scale: float =
         loss.backward()
         optimizer.step()
         optimizer.zero_grad(set_to_none=True)
-    with torch.no_grad():
-        return _with_segments(model, [_segment_of(params, seg)])
 
 
 def _psnr(model: Model, views) -> float:
@@ -138,10 +181,12 @@ def _psnr(model: Model, views) -> float:
 
 
 def compress_finetuned(model: Model, dataset, steps: int, preset: str = "web", prune: float = 0.3,
-                       seed: int = 0) -> tuple[Model, Settings, FinetuneInfo]:
+                       seed: int = 0, quantised_steps: int = 0) -> tuple[Model, Settings, FinetuneInfo]:
     """Prune the `prune` fraction (0-1) of least important Gaussians, fine-tune `steps` steps, and
-    compress with `preset` within what is left of its PSNR loss (see the module doc). Returns the
-    compressed model, its Settings and a FinetuneInfo."""
+    compress with `preset` within what is left of its PSNR loss (see the module doc). With
+    `quantised_steps`, then fine-tune that many steps through fake quantisation at QAT_LOWER options
+    below the bits chosen and search again (_requantised). Returns the compressed model, its
+    Settings and a FinetuneInfo."""
     import time
 
     if preset not in PRESETS or preset == "lossless":
@@ -158,19 +203,57 @@ def compress_finetuned(model: Model, dataset, steps: int, preset: str = "web", p
     spent = max(0.0, info.psnr_original - info.psnr_finetuned)
     left = max(0.0, PRESETS[preset].max_loss_db - spent)
     out, settings = compress(tuned, preset, views=views, max_loss_db=left)
+    if quantised_steps > 0:
+        out, settings = _requantised(out, settings, dataset, views, quantised_steps, preset, seed + 1, info)
     return out, settings, info
 
 
+def _file_bytes(model: Model, settings: Settings) -> int:
+    return len(stg_format.dumps(model, **settings.save_kwargs()))
+
+
+def _requantised(out: Model, settings: Settings, dataset, views, steps: int, preset: str, seed: int,
+                 info: FinetuneInfo) -> tuple[Model, Settings]:
+    """Quantisation-aware fine-tuning of the compressed `out` (its Gaussians, order and `settings.bits`
+    QAT_LOWER options lower; finetune_quantised, `steps` steps), then the preset's search again on
+    the quantised values without further pruning, within what is left of the preset's loss (held-out
+    views against info.psnr_original). Returns the smaller of the two within the loss (else the one
+    with the higher PSNR); info records the quantised model's PSNR, both (bytes, PSNR) and which one
+    was kept."""
+    import time
+
+    start = time.perf_counter()
+    bits = {name: lowered(b, QAT_LOWER) for name, b in settings.bits.items()}
+    qat = finetune_quantised(out, dataset, steps, bits, seed)
+    info.quantised_steps, info.psnr_quantised = int(steps), _psnr(qat, views)
+    loss = PRESETS[preset].max_loss_db
+    left = max(0.0, loss - max(0.0, info.psnr_original - info.psnr_quantised))
+    again, again_settings = compress(qat, preset, views=views, max_loss_db=left, prune_opacity=None,
+                                     prune_unseen=False, prune_importance=False)
+    info.seconds += time.perf_counter() - start
+    candidates = []
+    for m, s in ((out, settings), (again, again_settings)):
+        size, psnr = _file_bytes(m, s), _psnr(m, views)
+        info.candidates.append((size, psnr))
+        loss_db = info.psnr_original - psnr
+        candidates.append((loss_db > loss, size if loss_db <= loss else loss_db, m, s))
+    best = min(range(2), key=lambda i: candidates[i][:2])
+    info.quantised_kept = best == 1
+    return candidates[best][2], candidates[best][3]
+
+
 def finetune_file(in_path, out_path, dataset, steps: int, preset: str = "web", prune: float = 0.3,
-                  seed: int = 0) -> tuple[Report, FinetuneInfo]:
+                  seed: int = 0, quantised_steps: int = 0) -> tuple[Report, FinetuneInfo]:
     """Read `in_path`, compress_finetuned it against `dataset`, write `out_path` atomically; the report
     compares with the input file. ValueError (the file named) for a model fine-tuning cannot take."""
     model = stg_format.load(in_path)
     try:
-        compressed, settings, info = compress_finetuned(model, dataset, steps, preset, prune, seed)
+        compressed, settings, info = compress_finetuned(model, dataset, steps, preset, prune, seed,
+                                                              quantised_steps)
     except ValueError as e:
         raise ValueError(f"{os.fsdecode(in_path)}: {e}") from None
-    compressed.provenance["compress"]["finetune"] = {"steps": int(steps), "prune": float(prune), "seed": int(seed)}
+    compressed.provenance["compress"]["finetune"] = {"steps": int(steps), "prune": float(prune), "seed": int(seed),
+                                                       "quantised_steps": int(quantised_steps)}
     rep = report(model, compressed, settings, dataset_views(dataset, model), file_attribute_bytes(in_path),
                  os.path.getsize(in_path))
     stg_format.save(compressed, out_path, **settings.save_kwargs())
