@@ -69,7 +69,10 @@ class TrainConfig:
     video's segments start, "warm" (each from its predecessor's Gaussians at the seam, stg_train.warm,
     trained for warm_fraction of `iterations`) or "independent" (each from its own initial points, the
     paper's); warm_fraction: a warm segment's share of a cold segment's iterations; warm_chain: with
-    "warm", every warm_chain-th segment starts cold (parallel chains; 0: one chain).
+    "warm", every warm_chain-th segment starts cold (parallel chains; 0: one chain); warm_time_scale:
+    the least temporal scale (in the new segment's normalised time) of a carried Gaussian that is
+    drawn at the seam (stg_train.warm.extend_at_seam; 0: the exact re-based Gaussians only);
+    warm_points: a warm segment also starts from its own initial points (Trainer._add_initial_points).
     docs/training.md says which defaults are the reference's and which are ours, with the measurements behind them.
     """
 
@@ -106,6 +109,8 @@ class TrainConfig:
     segment_schedule: str = "independent"
     warm_fraction: float = 0.25
     warm_chain: int = 0
+    warm_time_scale: float = 0.0
+    warm_points: bool = True
 
     def for_dataset(self, dataset) -> "TrainConfig":
         """These settings with the choices left open made: init "auto" (or None) -> default_method(dataset),
@@ -131,5 +136,6 @@ class TrainConfig:
 #: The settings whose default became "auto" (2026-12-04), with the value a checkpoint without them ran with.
 SAVED_BEFORE_AUTO = {"appearance": False, "lens_falloff": None, "pose_refine": False}
 #: Settings added later whose default is not what a checkpoint without them ran with: warm segments
-#: (issue 51, 2026-12-07) came after independent ones.
-SAVED_BEFORE = {**SAVED_BEFORE_AUTO, "segment_schedule": "independent"}
+#: (issue 51, 2026-12-07) came after independent ones, and their own initial points after that.
+SAVED_BEFORE = {**SAVED_BEFORE_AUTO, "segment_schedule": "independent", "warm_points": False,
+                "warm_time_scale": 0.0}

@@ -145,6 +145,8 @@ class Trainer:
             if dataset.bounds is None and warm.bounds is not None:
                 self.dataset = dataset.with_bounds(warm.bounds, warm.bounds_source or "sfm")
             self.params = STGParams.from_state_dict(warm.params.state_dict(), self.device)
+            if config.warm_points:
+                self._add_initial_points(init_progress)
             self.box = np.asarray(warm.box)
             self.step = 0
         elif _state is None:
@@ -235,6 +237,16 @@ class Trainer:
         return initial_points(shown.corrected(brightness) if brightness else shown, config.init, config.num_points,
                               self.rng, every=config.init_every, depth_candidates=config.depth_candidates,
                               progress=progress)
+
+    def _add_initial_points(self, progress) -> None:
+        """A warm start's Gaussians joined by the segment's own initial points (as a cold start's,
+        their temporal centres over the segment): the carried ones hold what the seam shows, the new ones
+        the rest of the segment (TrainConfig.warm_points)."""
+        self.initial = self._initial_points(progress)
+        new = self.params.new_rows(*(torch.as_tensor(np.asarray(a), dtype=torch.float32) for a in
+                                     (self.initial.xyz, self.initial.rgb, self.initial.t_center)))
+        raw = {k: torch.cat([v.detach(), new[k].to(v.dtype)]) for k, v in self.params.raw.items()}
+        self.params = STGParams.from_state_dict({**self.params.state_dict(), "raw": raw}, self.device)
 
     # -- one step -------------------------------------------------------------------------------------
     def sample_frame(self) -> int:

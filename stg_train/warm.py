@@ -13,6 +13,7 @@ over as they are; Adam's moments and the strategies' statistics start afresh.
     rebase_time(raw, a, b)                the raw parameters on the axis tau' = a tau + b
     axis_map(prev, span)                  (a, b) from one Span's axis to the next's
     past_gaussians(raw, lo, hi, floor)    (N,) bool: no opacity above floor for tau in [lo, hi]
+    extend_at_seam(raw, scale, floor)     the Gaussians drawn at the seam made to last into the segment
     WarmStart, warm_start(...)            what a warm segment starts from (read from a checkpoint)
     warm_steps(iterations, fraction)      a warm segment's iterations
 """
@@ -76,6 +77,39 @@ def past_gaussians(raw: dict[str, Tensor], lo: float, hi: float, floor: float = 
     return temporal_opacity(raw, raw["t_center"].reshape(-1).clamp(lo, hi)) < floor
 
 
+def extend_at_seam(raw: dict[str, Tensor], scale: float, floor: float = PAST_OPACITY) -> dict[str, Tensor]:
+    """Raw parameters on the new segment's axis (rebase_time's) with the Gaussians drawn at its first
+    frame (temporal opacity at tau = 0 at least `floor`) made to last into the segment, keeping that
+    frame's picture: their temporal scale s raised to at least `scale` (s' = max(s, scale)) with the
+    spatial opacity lowered so that the opacity at tau = 0 is unchanged (sigmoid(o') = sigmoid(o)
+    exp((dt0 / s')^2 - (dt0 / s)^2), dt0 = -t_center), and their cubic motion replaced by the line with
+    the same position and velocity at tau = 0 (a cubic fitted over the segment before runs away when
+    it is extended past its end). Static components (t_center, t_scale_raw unchanged because of
+    freezing) are left alone by the caller. scale <= 0: unchanged. Returns new tensors."""
+    out = {k: v.detach().clone() for k, v in raw.items()}
+    if scale <= 0:
+        return out
+    dt0 = -out["t_center"].reshape(-1)
+    s = torch.exp(out["t_scale_raw"].reshape(-1))
+    alive = temporal_opacity(out, 0.0) >= floor
+    widen = alive & (s < scale)
+    s_new = torch.where(widen, torch.full_like(s, scale), s)
+    o = torch.sigmoid(out["opacity_logit"].reshape(-1)) * torch.exp((dt0 / s_new) ** 2 - (dt0 / s) ** 2)
+    o = o.clamp(1e-7, 1 - 1e-7)
+    t_raw = out["t_scale_raw"].reshape(-1)
+    out["t_scale_raw"] = torch.where(widen, torch.full_like(t_raw, math.log(scale)), t_raw).reshape(
+        out["t_scale_raw"].shape)
+    out["opacity_logit"] = torch.where(widen, torch.logit(o), out["opacity_logit"].reshape(-1)).reshape(
+        out["opacity_logit"].shape)
+    m, d = out["motion"], dt0[:, None]
+    at_seam = d * (m[:, 0:3] + d * (m[:, 3:6] + d * m[:, 6:9]))
+    velocity = m[:, 0:3] + d * (2 * m[:, 3:6] + 3 * d * m[:, 6:9])
+    line = widen[:, None]
+    out["xyz"] = torch.where(line, out["xyz"] + at_seam - d * velocity, out["xyz"])
+    out["motion"] = torch.where(line, torch.cat([velocity, torch.zeros_like(m[:, 3:9])], dim=1), m)
+    return out
+
+
 class WarmStart(NamedTuple):
     """What a warm segment starts from: params (STGParams on the new axis), box (2, 3) the first
     segment's initial points' bounds, bounds (near / far per camera, or None) and bounds_source as the
@@ -89,12 +123,14 @@ class WarmStart(NamedTuple):
     dropped: int
 
 
-def warm_start(checkpoint: Path, prev: Span, span: Span, context: tuple[int, int], device="cpu") -> WarmStart:
+def warm_start(checkpoint: Path, prev: Span, span: Span, context: tuple[int, int], device="cpu",
+               time_scale: float = 0.0) -> WarmStart:
     """The start of segment `span` from the checkpoint of the segment `prev` before it (a finished
     run's OUT/segments/NN/checkpoint.pt): its parameters rebased onto span's axis (rebase_time,
     axis_map), those past the new segment's frames and its `context` (before, after) frames dropped
-    (past_gaussians over tau in [-before / n, 1 + after / n]). Raises SegmentError for an unreadable
-    checkpoint (naming it)."""
+    (past_gaussians over tau in [-before / n, 1 + after / n]), and those drawn at its first frame made
+    to last at least `time_scale` (extend_at_seam; not for a static model). Raises SegmentError for an
+    unreadable checkpoint (naming it)."""
     try:
         state = read_checkpoint(checkpoint)
     except CheckpointError as e:
@@ -108,6 +144,8 @@ def warm_start(checkpoint: Path, prev: Span, span: Span, context: tuple[int, int
     if saved.get("static"):
         past[:] = False
     raw = {k: v[~past] for k, v in raw.items()}
+    if not saved.get("static") and "temporal_opacity" not in saved.get("frozen", ()):
+        raw = extend_at_seam(raw, time_scale)
     params = STGParams.from_state_dict({**saved, "raw": raw}, device)
     bounds = state.get("bounds")
     return WarmStart(params, np.asarray(state["box"]), None if bounds is None else np.asarray(bounds),
@@ -139,4 +177,5 @@ def start_of(out: Path, plan: list[Span], index: int, config, device="cpu") -> W
         return None
     num_frames = plan[-1].start + plan[-1].count
     return warm_start(prev / "checkpoint.pt", plan[index - 1], plan[index],
-                      context_of(plan[index], num_frames, config.segment_context), device)
+                      context_of(plan[index], num_frames, config.segment_context), device,
+                      config.warm_time_scale)

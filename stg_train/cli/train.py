@@ -152,10 +152,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "docs/training.md, \"Seams\")")
     p.add_argument("--segment-schedule", choices=SEGMENT_SCHEDULES, default=d.segment_schedule,
                    help="how a long video's segments start: warm (each from the previous segment's Gaussians "
-                        "at the seam, re-expressed on its time axis, trained for a quarter of --iterations; "
-                        "the first cold) or independent (each from its own initial points, as the paper); "
-                        "default %(default)s until warm is measured (stg_train.warm). (--segments picks which "
-                        "segments to train.)")
+                        "at the seam, re-expressed on its time axis, and its own initial points, trained for a "
+                        "quarter of --iterations; the first cold) or independent (each from its own initial "
+                        "points, as the paper); default %(default)s: warm segments are 3-6 dB worse inside "
+                        "(docs/notes/warm-segments.md). (--segments picks which segments to train.)")
     p.add_argument("--segments", type=_segment_list, default=None, metavar="LIST",
                    help="train only these segments, indices from 0: e.g. 2,3 or 0-2 (default: all); run "
                         "the others elsewhere, copy their OUT/segments/NN folders into OUT/segments, and "

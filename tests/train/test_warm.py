@@ -7,7 +7,7 @@ torch = pytest.importorskip("torch")
 
 from stg_train.params import gaussians_at  # noqa: E402
 from stg_train.segments import Span  # noqa: E402
-from stg_train.warm import axis_map, past_gaussians, rebase_time  # noqa: E402
+from stg_train.warm import axis_map, extend_at_seam, past_gaussians, rebase_time  # noqa: E402
 
 
 def _raw(n=50, seed=0):
@@ -38,6 +38,25 @@ def test_past_gaussians():
     assert past_gaussians(raw, 0.0, 1.0).tolist() == [True, False, False]
 
 
+def test_extended_gaussians_keep_the_first_frame_and_last_longer():
+    """extend_at_seam: at tau = 0 the same Gaussians (float64); the widened ones move on a line and are
+    more opaque later in the segment than the exact re-based ones; the others are untouched."""
+    raw = _raw(200, seed=1)
+    raw["t_center"] = raw["t_center"] * 0.6 - 0.5  # centres in [-0.5, 0.1]: some drawn at the seam
+    raw["t_scale_raw"] = raw["t_scale_raw"] - 1.5
+    new = extend_at_seam(raw, 1.0)
+    for x, y in zip(gaussians_at(raw, 0.0), gaussians_at(new, 0.0)):
+        torch.testing.assert_close(x, y, rtol=1e-12, atol=1e-12)
+    alive = gaussians_at(raw, 0.0).opacities >= 0.005
+    widened = alive & (torch.exp(raw["t_scale_raw"].reshape(-1)) < 1.0)
+    assert 20 < int(widened.sum()) < int(alive.sum()) + 1 and int((~alive).sum()) > 20
+    assert torch.all(gaussians_at(new, 0.5).opacities[widened] > gaussians_at(raw, 0.5).opacities[widened])
+    assert torch.all(new["motion"][widened][:, 3:] == 0)
+    for name in raw:
+        torch.testing.assert_close(new[name][~widened], raw[name][~widened], rtol=0, atol=0)
+    assert extend_at_seam(raw, 0.0)["t_scale_raw"].equal(raw["t_scale_raw"])
+
+
 def test_a_warm_segment_starts_where_its_predecessor_ends(synthetic_n3v, tmp_path):
     """A warm chain of two segments trains; before any step, segment 1's Gaussians render its first
     frame as segment 0's do at that video frame (a context frame of segment 0)."""
@@ -56,12 +75,23 @@ def test_a_warm_segment_starts_where_its_predecessor_ends(synthetic_n3v, tmp_pat
     metrics = __import__("json").loads((out / "metrics.json").read_text())
     assert [s["warm"] for s in metrics["segments"]] == [False, True]
     plan = plan_segments(8, 4)
-    start = warm_start(out / "segments" / "00" / "checkpoint.pt", plan[0], plan[1], (1, 0))
+    start = warm_start(out / "segments" / "00" / "checkpoint.pt", plan[0], plan[1], (1, 0), "cpu", 1.0)
     state = torch.load(out / "segments" / "00" / "checkpoint.pt", map_location="cpu", weights_only=True)
     before = STGParams.from_state_dict(state["params"], "cpu")
     ds = load_n3v(scene, prefer_png=True)
     cam = ds.cameras[ds.test_cameras[0]]
     assert GoldenDiff.of(trainer_render(start.params, cam, 0.0), trainer_render(before, cam, 1.0)).ok
+    # warm_points: the carried Gaussians first, then the segment's own initial points (over its time)
+    from stg_train.segments import segment_view
+    from stg_train.trainer import Trainer, TrainConfig
+    view = segment_view(ds, plan[1], 1)
+    config = TrainConfig(iterations=8, num_points=200, init="volume", warm_points=True)
+    trainer = Trainer(view, config, tmp_path / "probe", warm=start)
+    n = start.params.count
+    assert trainer.params.count == n + len(trainer.initial.xyz) and len(trainer.initial.xyz) > 50
+    torch.testing.assert_close(trainer.params["xyz"][:n].cpu(), start.params["xyz"].cpu(), rtol=0, atol=0)
+    t = trainer.params["t_center"][n:].detach().reshape(-1)
+    assert float(t.min()) >= 0.0 and float(t.max()) > 0.5
 
 
 class _Killed(Exception):
