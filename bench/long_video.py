@@ -15,8 +15,8 @@ prints, per schedule:
   what a user waits for) and its ratio to the first schedule's;
 - per segment: its training seconds and steps (OUT/segments/NN/metrics.json), its PSNR (the mean over
   its frames of the views' mean PSNR, played from the merged model) and the peak resident memory of
-  the training process while it ran (sampled every 0.2 s from /proc: whether memory grows with the
-  number of segments);
+  the training process while it ran, all of it and its anonymous part (without the memory-mapped
+  frame caches), sampled every 0.2 s from /proc: whether memory grows with the number of segments;
 - the seam figures of bench/seams.py (stg_train.metrics.evaluate_seams): interior mean PSNR, each
   boundary frame against it, and the temporal error at each seam against the interior's.
 Views: the held-out camera cam00 and the two novel rig views (stg_train.synthetic.novel_view_dataset),
@@ -118,7 +118,7 @@ def train_child(args, data: Path) -> None:
 
 def run_schedule(args, data: Path, out: Path, schedule: str) -> dict:
     """Train one schedule in a child process: {"wall_seconds", "peak_rss_mb" (whole run),
-    "segments": [{"index", "train_seconds", "iterations", "warm", "peak_rss_mb"}]}."""
+    "segments": [{"index", "train_seconds", "iterations", "warm", "peak_memory_mb": {"rss", "anon"}}]}."""
     child = [sys.executable, __file__, "--child", f"{schedule},{out}", "--data", str(data)]
     for flag in ("frames", "segment_frames", "iterations", "points", "width", "height", "seed", "threads"):
         value = getattr(args, flag)
@@ -129,7 +129,7 @@ def run_schedule(args, data: Path, out: Path, schedule: str) -> dict:
     print(f"training {schedule} ...", flush=True)
     start = time.perf_counter()
     proc = subprocess.Popen(child)
-    peaks: dict[int, float] = {}
+    peaks: dict[int, dict] = {}
     sampler = threading.Thread(target=sample_memory, args=(proc, out / "segments", peaks), daemon=True)
     sampler.start()
     _, status, usage = os.wait4(proc.pid, 0)
@@ -140,21 +140,25 @@ def run_schedule(args, data: Path, out: Path, schedule: str) -> dict:
         raise SystemExit(f"the {schedule} run failed (exit {proc.returncode}); its output is above")
     metrics = json.loads((out / "metrics.json").read_text())
     segments = [{"index": s["index"], "train_seconds": s["train_seconds"], "iterations": s["iterations"],
-                 "warm": s["warm"], "peak_rss_mb": peaks.get(s["index"])} for s in metrics["segments"]]
+                 "warm": s["warm"], "peak_memory_mb": peaks.get(s["index"])} for s in metrics["segments"]]
     return {"wall_seconds": wall, "peak_rss_mb": usage.ru_maxrss / 1024, "segments": segments}
 
 
 def sample_memory(proc, segments: Path, peaks: dict) -> None:
-    """Until `proc` ends: its resident memory (MB) every 0.2 s, the largest per segment in `peaks`
-    (the segment running: the count of segments/NN/metrics.json written so far)."""
+    """Until `proc` ends: its resident memory every 0.2 s, the largest per segment in `peaks` (the
+    segment running: the count of segments/NN/metrics.json written so far) as {"rss": MB, "anon": MB}:
+    all resident pages, and the anonymous ones alone (without the memory-mapped frame caches, whose
+    pages the kernel can drop)."""
     status = Path(f"/proc/{proc.pid}/status")
     while proc.returncode is None:
         try:
-            rss = int(next(line for line in status.read_text().splitlines() if line.startswith("VmRSS")).split()[1])
-        except (OSError, StopIteration, ValueError):
+            fields = dict(line.split(":", 1) for line in status.read_text().splitlines() if ":" in line)
+            rss, anon = (int(fields[k].split()[0]) / 1024 for k in ("VmRSS", "RssAnon"))
+        except (OSError, KeyError, ValueError):
             break
         running = len(list(segments.glob("*/metrics.json"))) if segments.is_dir() else 0
-        peaks[running] = max(peaks.get(running, 0.0), rss / 1024)
+        peak = peaks.setdefault(running, {"rss": 0.0, "anon": 0.0})
+        peak["rss"], peak["anon"] = max(peak["rss"], rss), max(peak["anon"], anon)
         time.sleep(0.2)
 
 
@@ -196,7 +200,8 @@ def report(runs: dict) -> None:
               f"({interior - first['seams']['interior_psnr']:+.2f}); lowest boundary frame {boundary:+.2f} dB "
               f"against the interior; worst seam flicker {worst:.2f}x")
         for s, psnr in zip(run["segments"], run["per_segment_psnr"]):
-            peak = "-" if s["peak_rss_mb"] is None else f"{s['peak_rss_mb']:.0f} MB"
+            peak = s["peak_memory_mb"]
+            peak = "-" if peak is None else f"{peak['rss']:.0f} MB ({peak['anon']:.0f} MB anonymous)"
             print(f"  segment {s['index']}: {'warm' if s['warm'] else 'cold'}, {s['iterations']} steps, "
                   f"{s['train_seconds']:.0f} s training, {psnr:.2f} dB, peak memory {peak}")
 
