@@ -77,15 +77,16 @@ def past_gaussians(raw: dict[str, Tensor], lo: float, hi: float, floor: float = 
     return temporal_opacity(raw, raw["t_center"].reshape(-1).clamp(lo, hi)) < floor
 
 
-def extend_at_seam(raw: dict[str, Tensor], scale: float, floor: float = PAST_OPACITY) -> dict[str, Tensor]:
+def extend_at_seam(raw: dict[str, Tensor], scale: float, floor: float = PAST_OPACITY,
+                   frozen=()) -> dict[str, Tensor]:
     """Raw parameters on the new segment's axis (rebase_time's) with the Gaussians drawn at its first
     frame (temporal opacity at tau = 0 at least `floor`) made to last into the segment, keeping that
     frame's picture: their temporal scale s raised to at least `scale` (s' = max(s, scale)) with the
     spatial opacity lowered so that the opacity at tau = 0 is unchanged (sigmoid(o') = sigmoid(o)
     exp((dt0 / s')^2 - (dt0 / s)^2), dt0 = -t_center), and their cubic motion replaced by the line with
     the same position and velocity at tau = 0 (a cubic fitted over the segment before runs away when
-    it is extended past its end). Static components (t_center, t_scale_raw unchanged because of
-    freezing) are left alone by the caller. scale <= 0: unchanged. Returns new tensors."""
+    it is extended past its end; kept when "motion" is in `frozen`). The caller skips models whose
+    temporal opacity is frozen. scale <= 0: unchanged. Returns new tensors."""
     out = {k: v.detach().clone() for k, v in raw.items()}
     if scale <= 0:
         return out
@@ -101,6 +102,8 @@ def extend_at_seam(raw: dict[str, Tensor], scale: float, floor: float = PAST_OPA
         out["t_scale_raw"].shape)
     out["opacity_logit"] = torch.where(widen, torch.logit(o), out["opacity_logit"].reshape(-1)).reshape(
         out["opacity_logit"].shape)
+    if "motion" in frozen:
+        return out
     m, d = out["motion"], dt0[:, None]
     at_seam = d * (m[:, 0:3] + d * (m[:, 3:6] + d * m[:, 6:9]))
     velocity = m[:, 0:3] + d * (2 * m[:, 3:6] + 3 * d * m[:, 6:9])
@@ -145,7 +148,7 @@ def warm_start(checkpoint: Path, prev: Span, span: Span, context: tuple[int, int
         past[:] = False
     raw = {k: v[~past] for k, v in raw.items()}
     if not saved.get("static") and "temporal_opacity" not in saved.get("frozen", ()):
-        raw = extend_at_seam(raw, time_scale)
+        raw = extend_at_seam(raw, time_scale, frozen=saved.get("frozen", ()))
     params = STGParams.from_state_dict({**saved, "raw": raw}, device)
     bounds = state.get("bounds")
     return WarmStart(params, np.asarray(state["box"]), None if bounds is None else np.asarray(bounds),
