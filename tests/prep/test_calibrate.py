@@ -108,3 +108,21 @@ def test_distorted_lenses_are_undistorted_into_the_frames(calibration_scene, tmp
     assert all(c.model == "pinhole" and c.distortion == () for c in dataset.cameras)
     k1 = [c["distortion"][0] for c in report["cameras"]]
     assert all(-0.15 < k < -0.08 for k in k1), k1
+
+
+def test_an_implausible_focal_length_is_found():
+    """A degenerate fit (seen once under load: fx = -649811 px on a 160 px wide rig) is named, so that
+    stg-prep refits on one thread or stops with a PrepError, never a Camera's ValueError traceback."""
+    from types import SimpleNamespace
+
+    from stg_train.prep.calibrate import implausible_focal
+
+    def model(*focals):
+        cams = {i + 1: SimpleNamespace(params=[f, 80.0, 60.0]) for i, f in enumerate(focals)}
+        ims = {i + 1: SimpleNamespace(name=f"cam{i:02d}.png", camera_id=i + 1, has_pose=True) for i in range(len(focals))}
+        return SimpleNamespace(cameras=cams, images=ims)
+
+    assert implausible_focal(model(150.0, 160.0, 170.0), 160) is None
+    assert implausible_focal(model(150.0, -649811.7, 170.0), 160) == "cam01"
+    assert implausible_focal(model(150.0, 160.0, 9000.0), 160) == "cam02"
+    assert implausible_focal(model(150.0, 5.0), 160) == "cam01"
