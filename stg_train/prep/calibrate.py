@@ -215,28 +215,28 @@ def _calibration(rec, names: list[str], model: str) -> Calibration:
 FOCAL_WIDTHS = (0.05, 50.0)
 
 
-def implausible_focal(rec, width: int) -> str | None:
-    """The first registered image (its name's stem) of a pycolmap model whose focal length (its
-    camera's first parameter, pixels) is outside FOCAL_WIDTHS x width, else None."""
+def implausible_focal(rec, width: int) -> tuple[str, float] | None:
+    """(name's stem, focal length in pixels) of the first registered image of a pycolmap model whose
+    focal length (its camera's first parameter) is outside FOCAL_WIDTHS x width, else None."""
     lo, hi = (f * width for f in FOCAL_WIDTHS)
     for im in rec.images.values():
-        if im.has_pose and not lo < float(rec.cameras[im.camera_id].params[0]) < hi:
-            return Path(im.name).stem
+        focal = float(rec.cameras[im.camera_id].params[0])
+        if im.has_pose and not lo < focal < hi:
+            return Path(im.name).stem, focal
     return None
 
 
 def _fit(pycolmap, work: Path, names: list[str], model: str, threads: int, size, stage) -> Calibration:
     rec, counts = _run_colmap(pycolmap, work, names, CAMERA_MODELS[model], threads, size,
                               stage(f"stg-prep calibrate ({model})"))
-    if rec is not None and implausible_focal(rec, size[0]) and threads != 1:
+    bad = None if rec is None else implausible_focal(rec, size[0])
+    if bad and threads != 1:
         # the multi-threaded mapper's result depends on the threads' timing: once more on one thread
         rec, counts = _run_colmap(pycolmap, work, names, CAMERA_MODELS[model], 1, size,
                                   stage(f"stg-prep calibrate ({model}, again on one thread)"))
-    bad = None if rec is None else implausible_focal(rec, size[0])
+        bad = None if rec is None else implausible_focal(rec, size[0])
     if bad:
-        focal = next(float(rec.cameras[im.camera_id].params[0]) for im in rec.images.values()
-                     if Path(im.name).stem == bad)
-        raise PrepError(f"{bad}: the calibration is degenerate (a focal length of {focal:.1f} px for pictures "
+        raise PrepError(f"{bad[0]}: the calibration is degenerate (a focal length of {bad[1]:.1f} px for pictures "
                         f"{size[0]} px wide): the cameras need more texture or more parallax between them")
     registered = set() if rec is None else {Path(im.name).stem for im in rec.images.values() if im.has_pose}
     missing = [n for n in names if n not in registered]

@@ -123,6 +123,6 @@ def test_an_implausible_focal_length_is_found():
         return SimpleNamespace(cameras=cams, images=ims)
 
     assert implausible_focal(model(150.0, 160.0, 170.0), 160) is None
-    assert implausible_focal(model(150.0, -649811.7, 170.0), 160) == "cam01"
-    assert implausible_focal(model(150.0, 160.0, 9000.0), 160) == "cam02"
-    assert implausible_focal(model(150.0, 5.0), 160) == "cam01"
+    assert implausible_focal(model(150.0, -649811.7, 170.0), 160) == ("cam01", -649811.7)
+    assert implausible_focal(model(150.0, 160.0, 9000.0), 160) == ("cam02", 9000.0)
+    assert implausible_focal(model(150.0, 5.0), 160) == ("cam01", 5.0)

@@ -108,3 +108,22 @@ def test_a_video_that_holds_fewer_frames_than_it_states(sync_scene, tmp_path):
     assert report["cameras"][3]["frames"] == decoded
     assert any(f"cam03.avi: states 40 frames, {decoded} decode" in w for w in report["warnings"]), report["warnings"]
     assert len(list((tmp_path / "out" / "images" / "cam00").iterdir())) == decoded
+
+
+def test_a_degenerate_fit_is_mapped_again_on_one_thread(sync_scene, tmp_path, monkeypatch):
+    """A fit with an implausible focal length (as pycolmap's threaded mapper once gave under load) is
+    mapped once more on one thread, and that fit is the one written."""
+    import stg_train.prep.calibrate as calibrate
+
+    found, real = [], calibrate.implausible_focal
+
+    def first_fit_degenerate(rec, width):
+        found.append(width)
+        return ("cam01", -5.0) if len(found) == 1 else real(rec, width)
+
+    monkeypatch.setattr(calibrate, "implausible_focal", first_fit_degenerate)
+    n3v, _ = sync_scene
+    raw = raw_folder(n3v, tmp_path / "videos", (2, 0, 1, 0), "png")
+    assert main([str(raw), str(tmp_path / "out"), "--quiet"]) == 0
+    assert len(found) == 2
+    assert all(c.model == "pinhole" and 80 < c.fx < 480 for c in load_dataset(tmp_path / "out").cameras)
