@@ -245,8 +245,9 @@ class Trainer:
         self.initial = self._initial_points(progress)
         new = self.params.new_rows(*(torch.as_tensor(np.asarray(a), dtype=torch.float32) for a in
                                      (self.initial.xyz, self.initial.rgb, self.initial.t_center)))
-        raw = {k: torch.cat([v.detach(), new[k].to(v.dtype)]) for k, v in self.params.raw.items()}
-        self.params = STGParams.from_state_dict({**self.params.state_dict(), "raw": raw}, self.device)
+        p = self.params
+        raw = {k: torch.cat([v.detach(), new[k].to(v.dtype)]) for k, v in p.raw.items()}
+        self.params = STGParams(raw, p.kind, p.static, p.decoder, p.frozen)
 
     # -- one step -------------------------------------------------------------------------------------
     def sample_frame(self) -> int:
