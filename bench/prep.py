@@ -3,13 +3,14 @@
 and the pose errors, for rigs of 12 and 20 cameras (docs/datasets.md, "Your own videos").
 
     python bench/prep.py [--cameras 12,20] [--size 640x480] [--frames 30] [--data DIR] [--threads N]
-                         [--train] [--seeds 0,1] [--iterations N] [--downscale K]
+                         [--scene-seed S] [--train] [--seeds 0,1] [--iterations N] [--downscale K]
                          [--world prepared|truth] [--reuse]
 
 For each camera count the scene (stg_train.synthetic, `stg-synth --cameras C`) is written in the N3V
-layout into DATA/n3v_C_WxH_F/ (reused when there), and from it a folder of raw videos: each camera's lossless
-frames, its first 0-5 frames left out (a camera that started late, drawn from seed 0), poses_bounds.npy
-dropped. stg_train.prep.prepare turns that into DATA/prep_C/; the table gives each stage's seconds, the
+layout into DATA/n3v_C_WxH_F/ (reused when there; --scene-seed S other than 0 draws another scene and
+rig, and every folder's name then ends in _sceneS), and from it a folder of raw videos: each camera's
+lossless frames, its first 0-5 frames left out (a camera that started late, drawn from seed 0),
+poses_bounds.npy dropped. stg_train.prep.prepare turns that into DATA/prep_C/; the table gives each stage's seconds, the
 cameras registered, whether every offset came back exactly, and the largest rotation and position
 errors after one similarity to the truth (stg_train.rig.gauge.aligned_pose_errors; positions in % of
 the rig's largest distance between cameras).
@@ -123,6 +124,7 @@ def main() -> None:
     ap.add_argument("--size", default="640x480")
     ap.add_argument("--frames", type=int, default=30)
     ap.add_argument("--data", default=os.path.join("/tmp", "stg-bench-prep"))
+    ap.add_argument("--scene-seed", type=int, default=0, help="stg-synth's scene and rig (default 0)")
     ap.add_argument("--threads", type=int, default=-1, help="pycolmap's threads (default: all)")
     ap.add_argument("--train", action="store_true", help="also train both ways and compare (expensive)")
     ap.add_argument("--seeds", default="0,1")
@@ -138,29 +140,30 @@ def main() -> None:
     print(f"synthetic scene, {width}x{height}, {args.frames} frames, starts cut 0-5 frames, PNG frame folders")
     rows = []
     for count in map(int, args.cameras.split(",")):
-        n3v = data / f"n3v_{count}_{width}x{height}_{args.frames}"
-        scene = SyntheticScene(seed=0, duration=args.frames / 30.0)
+        tag = f"_scene{args.scene_seed}" if args.scene_seed else ""
+        n3v = data / f"n3v_{count}_{width}x{height}_{args.frames}{tag}"
+        scene = SyntheticScene(seed=args.scene_seed, duration=args.frames / 30.0)
         if not (n3v / "poses_bounds.npy").is_file():
             write_n3v(n3v, scene, num_cameras=count, num_frames=args.frames, width=width, height=height)
         truth = scene.cameras(count, width, height)
         cuts = np.random.default_rng(0).integers(0, 6, count)
-        done = data / f"prep_{count}" / "prep.json"
+        prep_dir, raw_dir = data / f"prep_{count}{tag}", data / f"raw_{count}{tag}"
+        done = prep_dir / "prep.json"
         if args.reuse and done.is_file():  # the runs reused were trained on this calibration
             report = json.loads(done.read_text())
         else:
-            raw_videos(n3v, data / f"raw_{count}", cuts)
+            raw_videos(n3v, raw_dir, cuts)
             with progress_stages() as stage:
-                report = prepare(data / f"raw_{count}", data / f"prep_{count}", force=True, threads=args.threads,
-                                 progress=stage)
+                report = prepare(raw_dir, prep_dir, force=True, threads=args.threads, progress=stage)
         exact = [c["offset"] for c in report["cameras"]] == [int(max(cuts) - c) for c in cuts]
-        rotation, position = errors(data / f"prep_{count}", truth)
+        rotation, position = errors(prep_dir, truth)
         rows.append((count, report, exact, rotation, position))
         if args.train:
-            name = f"true_{count}" + ("" if args.world == "prepared" else "_truthworld")
-            true_rig(data / f"prep_{count}", data / name, truth, args.world)
+            name = f"true_{count}{tag}" + ("" if args.world == "prepared" else "_truthworld")
+            true_rig(prep_dir, data / name, truth, args.world)
             for seed in map(int, args.seeds.split(",")):
                 runs = data / "runs"
-                prepared = held_out_psnr(data / f"prep_{count}", runs / f"prep_{count}_s{seed}", seed, args.iterations,
+                prepared = held_out_psnr(prep_dir, runs / f"{prep_dir.name}_s{seed}", seed, args.iterations,
                                          args.downscale, args.reuse)
                 true = held_out_psnr(data / name, runs / f"{name}_s{seed}", seed, args.iterations, args.downscale,
                                      args.reuse)

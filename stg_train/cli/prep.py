@@ -70,7 +70,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--camera-model", choices=tuple(CAMERA_MODELS), default="pinhole",
                    help="lens model fitted: pinhole (one focal length; where it fits badly opencv is tried and "
                         "the report says so), opencv (radial and tangential distortion, undistorted into the "
-                        "written frames), fisheye (OpenCV's fisheye model, kept in the model) (default pinhole)")
+                        "written frames), fisheye (OpenCV's fisheye model, kept in the model) (default pinhole); "
+                        "each fitted once per camera and once shared by all the cameras, the shared fit kept "
+                        "where it explains the features as well (identical cameras)")
     p.add_argument("--fps", type=positive_float, default=None,
                    help="frame rate of frame folders (default: the videos', else 30)")
     p.add_argument("--min-frames", type=positive_int, default=MIN_FRAMES, metavar="N",
@@ -91,7 +93,8 @@ def summary(report: dict, out, seconds: float) -> str:
              f"{report['height']} at {report['fps']:g} fps, into {out} in {seconds:.1f} s",
              f"  offsets ({report['sync']['method']}{', confidence' if report['sync']['method'] == 'estimated' else ''}):"
              f" {offsets}",
-             f"  calibration: {cal['camera_model']}, {cal['registered']} of {cal['cameras']} cameras registered, "
+             f"  calibration: {cal['camera_model']} ({cal['intrinsics']} intrinsics), {cal['registered']} of "
+             f"{cal['cameras']} cameras registered, "
              f"mean reprojection error {cal['mean_reprojection_error_px']:.3f} px, {cal['points']} points"]
     kept = [f"{c['name']} {c['frames_used'][0]}-{c['frames_used'][1]} of {c['frames']}" for c in report["cameras"]
             if c["frames"] != report["frames"]]

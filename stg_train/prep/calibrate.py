@@ -11,6 +11,10 @@ starting from an equidistant lens 180 degrees across (COLMAP's first guess for e
 about 45 degrees across, verifies no fisheye match).
 Pinhole is the default; where it fits badly (a camera left out, or a mean reprojection error above
 FALLBACK_ERROR pixels) opencv is tried and the better of the two kept, the report says so.
+Each model is fitted twice, with intrinsics per camera and with one set shared by every camera; the
+shared set is kept where it explains the features as well (shared_is_as_good): a rig of identical
+cameras then has no per-camera freedom to trade a focal length for the camera's distance from the
+scene, the error that per-camera fits of a narrow rig make.
 
 The result is in the project's conventions (formats/stg-v1.md: OpenCV axes, world-to-camera, pixel
 centres at +0.5, which are COLMAP's) and in a gauge of its own: the world is the first camera's frame,
@@ -35,6 +39,10 @@ CAMERA_MODELS = {"pinhole": "SIMPLE_PINHOLE", "opencv": "OPENCV", "fisheye": "OP
 MAX_ERROR = 1.0
 #: A pinhole fit with a mean reprojection error above this (pixels) falls back to opencv.
 FALLBACK_ERROR = 0.75
+#: Intrinsics shared by all the cameras are kept when their fit's mean reprojection error is within this
+#: factor of the per-camera fit's, with at least this share of its observations (shared_is_as_good).
+SHARED_ERROR = 1.05
+SHARED_OBSERVATIONS = 0.97
 #: Frames per camera whose median is its static picture.
 STATIC_FRAMES = 9
 
@@ -51,7 +59,9 @@ class Calibration:
     of the opencv cameras (OpenCV's model, in the Camera's pixels); points (N, 3) world units and colours
     (N, 3) float32 in [0, 1]; model: the --camera-model used; fallback: why it is not the one asked for
     (None when it is); reprojection_error: mean over all observations, pixels; per_camera: name ->
-    (observations, mean reprojection error in pixels)."""
+    (observations, mean reprojection error in pixels); intrinsics: "shared" (one set for every camera)
+    or "per camera"; intrinsics_fits: "shared" / "per camera" -> (mean reprojection error in pixels,
+    observations) of each that was fitted."""
 
     cameras: list[Camera]
     points: np.ndarray
@@ -61,6 +71,8 @@ class Calibration:
     per_camera: dict
     distortion: dict = field(default_factory=dict)
     fallback: str | None = None
+    intrinsics: str = "per camera"
+    intrinsics_fits: dict = field(default_factory=dict)
 
 
 @contextlib.contextmanager
@@ -99,10 +111,11 @@ def _unregistered_error(missing: list[str], counts: dict[str, dict[str, int]]) -
 
 
 def _run_colmap(pycolmap, work: Path, names: list[str], colmap_model: str, threads: int, size: tuple[int, int],
-                progress: Callable[[int, int], None]):
+                progress: Callable[[int, int], None], shared: bool = False):
     """Features, matches and mapping of work/images/<name>.png (size: their (width, height)) -> (the
-    largest model or None, match counts). progress(done, total): the features, the matches, then each
-    image the mapper registers (total 2 + images; a mapper that starts a second model counts on)."""
+    largest model or None, match counts); shared: one set of intrinsics for all the pictures (else one
+    per picture). progress(done, total): the features, the matches, then each image the mapper
+    registers (total 2 + images; a mapper that starts a second model counts on)."""
     total = 2 + len(names)
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = threads
@@ -112,9 +125,11 @@ def _run_colmap(pycolmap, work: Path, names: list[str], colmap_model: str, threa
     if colmap_model == CAMERA_MODELS["fisheye"]:  # COLMAP's first guess, a narrow lens, verifies no match
         w, h = size
         reader.camera_params = f"{w / np.pi},{w / np.pi},{w / 2},{h / 2},0,0,0,0"
-    database = work / f"{colmap_model}.db"
+    kind = f"{colmap_model}_shared" if shared else colmap_model
+    database = work / f"{kind}.db"
+    mode = pycolmap.CameraMode.SINGLE if shared else pycolmap.CameraMode.PER_IMAGE
     pycolmap.extract_features(database, work / "images", image_names=[f"{n}.png" for n in names],
-                              camera_mode=pycolmap.CameraMode.PER_IMAGE, reader_options=reader,
+                              camera_mode=mode, reader_options=reader,
                               extraction_options=extraction, device=pycolmap.Device.cpu)
     progress(1, total)
     matching = pycolmap.FeatureMatchingOptions()
@@ -133,7 +148,7 @@ def _run_colmap(pycolmap, work: Path, names: list[str], colmap_model: str, threa
     options.mapper.filter_max_reproj_error = MAX_ERROR
     options.triangulation.complete_max_reproj_error = MAX_ERROR
     options.triangulation.merge_max_reproj_error = MAX_ERROR
-    out = work / f"{colmap_model}_sparse"
+    out = work / f"{kind}_sparse"
     out.mkdir(exist_ok=True)
     registered = [2]
 
@@ -227,13 +242,46 @@ def implausible_focal(rec, width: int) -> tuple[str, float] | None:
 
 
 def _fit(pycolmap, work: Path, names: list[str], model: str, threads: int, size, stage) -> Calibration:
-    rec, counts = _run_colmap(pycolmap, work, names, CAMERA_MODELS[model], threads, size,
-                              stage(f"stg-prep calibrate ({model})"))
+    """The rig fitted with one set of intrinsics per camera and with one shared by all of them: the
+    shared fit where it explains the features as well (shared_is_as_good), else the per-camera one."""
+    per_camera = _fit_intrinsics(pycolmap, work, names, model, threads, size, stage, shared=False)
+    try:
+        shared = _fit_intrinsics(pycolmap, work, names, model, threads, size, stage, shared=True)
+    except PrepError:
+        return per_camera
+    kept = shared if shared_is_as_good(shared, per_camera) else per_camera
+    kept.intrinsics_fits = {fit.intrinsics: (fit.reprojection_error, observations(fit)) for fit in (shared, per_camera)}
+    return kept
+
+
+def observations(calibration: Calibration) -> int:
+    """The observations (2D features with a 3D point) of a calibration, over all its cameras."""
+    return sum(n for n, _ in calibration.per_camera.values())
+
+
+def shared_is_as_good(shared: Calibration, per_camera: Calibration) -> bool:
+    """Whether the shared intrinsics explain the features as well as one set per camera: a mean
+    reprojection error within SHARED_ERROR of the per-camera one's, with SHARED_OBSERVATIONS of its
+    observations or more (cameras that differ lose observations to the mapper's MAX_ERROR)."""
+    return (shared.reprojection_error <= SHARED_ERROR * per_camera.reprojection_error
+            and observations(shared) >= SHARED_OBSERVATIONS * observations(per_camera))
+
+
+def _fit_intrinsics(pycolmap, work: Path, names: list[str], model: str, threads: int, size, stage,
+                    shared: bool) -> Calibration:
+    """One fit (_run_colmap) of `model`, intrinsics shared or per camera, checked: a degenerate focal
+    length is mapped once more on one thread, then a PrepError, as is a camera left unregistered."""
+    label = f"{model}, shared intrinsics" if shared else model
+
+    def run(threads: int, again: str = ""):
+        return _run_colmap(pycolmap, work, names, CAMERA_MODELS[model], threads, size,
+                           stage(f"stg-prep calibrate ({label}{again})"), shared)
+
+    rec, counts = run(threads)
     bad = None if rec is None else implausible_focal(rec, size[0])
     if bad and threads != 1:
         # the multi-threaded mapper's result depends on the threads' timing: once more on one thread
-        rec, counts = _run_colmap(pycolmap, work, names, CAMERA_MODELS[model], 1, size,
-                                  stage(f"stg-prep calibrate ({model}, again on one thread)"))
+        rec, counts = run(1, ", again on one thread")
         bad = None if rec is None else implausible_focal(rec, size[0])
     if bad:
         raise PrepError(f"{bad[0]}: the calibration is degenerate (a focal length of {bad[1]:.1f} px for pictures "
@@ -242,7 +290,9 @@ def _fit(pycolmap, work: Path, names: list[str], model: str, threads: int, size,
     missing = [n for n in names if n not in registered]
     if missing:
         raise _unregistered_error(missing, counts)
-    return _calibration(rec, names, model)
+    calibration = _calibration(rec, names, model)
+    calibration.intrinsics = "shared" if shared else "per camera"
+    return calibration
 
 
 def calibrate(pictures: dict[str, np.ndarray], work_dir, camera_model: str = "pinhole", threads: int = -1,

@@ -184,7 +184,9 @@ def _report(videos, clips, fps, offsets, found, span, trimmed, limit, calibratio
         "calibration": {"camera_model": calibration.model, "requested": camera_model,
                         "fallback": calibration.fallback, "registered": len(calibration.cameras),
                         "cameras": len(clips), "mean_reprojection_error_px": round(calibration.reprojection_error, 4),
-                        "points": int(len(calibration.points))},
+                        "points": int(len(calibration.points)), "intrinsics": calibration.intrinsics,
+                        "intrinsics_fits": {k: {"mean_reprojection_error_px": round(e, 4), "observations": n}
+                                            for k, (e, n) in calibration.intrinsics_fits.items()}},
         "cameras": cameras, "warnings": warnings,
         "seconds": {k: round(v, 3) for k, v in seconds.items()},
     }

@@ -3,6 +3,7 @@ registered; after one similarity to the truth, rotations within 0.1 degrees and 
 of the rig's size), and the written model is what stg_train.data.load_dataset reads; a camera that does
 not register is an error naming it with its match counts, OUT untouched."""
 import re
+from dataclasses import replace
 import shutil
 
 import cv2
@@ -22,13 +23,19 @@ def _centres(cameras) -> np.ndarray:
     return np.stack([-c.world_to_camera[:3, :3].T @ c.world_to_camera[:3, 3] for c in cameras])
 
 
-def test_the_rig_is_calibrated_back(calibration_scene, tmp_path):
-    n3v, truth = calibration_scene
+@pytest.mark.parametrize("scene", ["calibration_scene", "calibration_scene_seed1"])
+def test_the_rig_is_calibrated_back(scene, request, tmp_path):
+    n3v, truth = request.getfixturevalue(scene)
     raw = raw_folder(n3v, tmp_path / "videos")
     report = prepare(raw, tmp_path / "out", offsets=[0] * 12, min_frames=1)
     cal = report["calibration"]
     assert (cal["registered"], cal["cameras"], cal["camera_model"], cal["fallback"]) == (12, 12, "pinhole", None)
     assert 0 < cal["mean_reprojection_error_px"] < 0.5
+    # identical cameras: the shared intrinsics explain the features as well, and are kept
+    fits = cal["intrinsics_fits"]
+    assert cal["intrinsics"] == "shared" and set(fits) == {"shared", "per camera"}
+    assert fits["shared"]["mean_reprojection_error_px"] == cal["mean_reprojection_error_px"]
+    assert fits["shared"]["observations"] == sum(c["observations"] for c in report["cameras"])
     assert all(c["observations"] > 100 for c in report["cameras"])
 
     dataset = load_dataset(tmp_path / "out")
@@ -72,7 +79,8 @@ def test_a_fisheye_dome_registers_every_camera(fisheye_scene, tmp_path, capsys):
     for cam in truth:  # the frame folders, without models.json
         shutil.copytree(folder / cam.name, raw / cam.name)
     assert main([str(raw), str(tmp_path / "out"), "--camera-model", "fisheye", "--min-frames", "2"]) == 0
-    assert "calibration: fisheye, 12 of 12 cameras registered" in capsys.readouterr().err
+    assert re.search(r"calibration: fisheye \((shared|per camera) intrinsics\), 12 of 12 cameras registered",
+                     capsys.readouterr().err)
     dataset = load_dataset(tmp_path / "out")
     assert [c.name for c in dataset.cameras] == [c.name for c in truth]
     assert all(c.model == "fisheye" and len(c.distortion) == 4 for c in dataset.cameras)
@@ -126,3 +134,36 @@ def test_an_implausible_focal_length_is_found():
     assert implausible_focal(model(150.0, -649811.7, 170.0), 160) == ("cam01", -649811.7)
     assert implausible_focal(model(150.0, 160.0, 9000.0), 160) == ("cam02", 9000.0)
     assert implausible_focal(model(150.0, 5.0), 160) == ("cam01", 5.0)
+
+
+def test_cameras_with_different_lenses_keep_their_own_intrinsics(tmp_path):
+    """A rig whose cameras zoom differently (focal lengths 8 % apart): one shared focal length explains
+    fewer of their features (the mapper drops those off by more than 1 px), so each camera keeps its
+    own, fitted within 1 %."""
+    from stg_train.prep.calibrate import calibrate
+    from stg_train.synthetic import SyntheticScene, _to_uint8
+
+    scene = SyntheticScene(seed=0, duration=1 / 30)
+    zoom = [0.92, 1.0, 1.08] * 4
+    truth = [replace(c, fx=c.fx * z, fy=c.fy * z) for c, z in zip(scene.cameras(12, 640, 480), zoom)]
+    pictures = {c.name: _to_uint8(scene.render(c, 0.0)) for c in truth}
+    cal = calibrate(pictures, tmp_path / "work")
+    assert cal.intrinsics == "per camera"
+    (_, shared_count), (_, count) = cal.intrinsics_fits["shared"], cal.intrinsics_fits["per camera"]
+    assert shared_count < 0.97 * count, cal.intrinsics_fits
+    for got, want in zip(cal.cameras, truth):
+        assert abs(got.fx / want.fx - 1) < 0.01, (got.name, got.fx, want.fx)
+
+
+def test_shared_intrinsics_must_explain_the_features_as_well():
+    from stg_train.prep.calibrate import Calibration, shared_is_as_good
+
+    def fit(error, observations):
+        return Calibration([], np.zeros((0, 3)), np.zeros((0, 3)), "pinhole", error,
+                           {"cam00": (observations // 2, error), "cam01": (observations - observations // 2, error)})
+
+    per_camera = fit(0.30, 10000)
+    assert shared_is_as_good(fit(0.30, 10000), per_camera)
+    assert shared_is_as_good(fit(0.315, 9700), per_camera)
+    assert not shared_is_as_good(fit(0.316, 10000), per_camera)  # a worse fit
+    assert not shared_is_as_good(fit(0.25, 9690), per_camera)  # features lost to the mapper's 1 px bound
