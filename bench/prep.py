@@ -10,10 +10,10 @@ For each camera count the scene (stg_train.synthetic, `stg-synth --cameras C`) i
 layout into DATA/n3v_C_WxH_F/ (reused when there; --scene-seed S other than 0 draws another scene and
 rig, and every folder's name then ends in _sceneS), and from it a folder of raw videos: each camera's
 lossless frames, its first 0-5 frames left out (a camera that started late, drawn from seed 0),
-poses_bounds.npy dropped. stg_train.prep.prepare turns that into DATA/prep_C/; the table gives each stage's seconds, the
-cameras registered, whether every offset came back exactly, and the largest rotation and position
-errors after one similarity to the truth (stg_train.rig.gauge.aligned_pose_errors; positions in % of
-the rig's largest distance between cameras).
+poses_bounds.npy dropped. stg_train.prep.prepare turns that into DATA/prep_C/; the table gives each
+stage's seconds, the cameras registered, whether every offset came back exactly, and the largest
+rotation and position errors after one similarity to the truth (stg_train.rig.gauge.aligned_pose_errors;
+positions in % of the rig's largest distance between cameras).
 
 --train (expensive: four trainings per camera count) trains DATA/prep_C/ and DATA/true_C/, the same
 frames and 3D points with the true cameras (moved into the prepared world by one similarity, so that
