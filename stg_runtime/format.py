@@ -16,20 +16,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import onnx_mlp
+from . import onnx_mlp, range_coder
 from .atomic import write_atomic
 from .camera import Camera
 from .model import ACTIVATIONS, ATTRIBUTES, FEATURE_CHANNELS, KINDS, Model, Segment, allowed_channels, attribute_shape
 
 MAGIC = b"\x89STG\r\n\x1a\n"
-VERSION = (1, 4)  # the version this module reads and writes; see written_version()
+VERSION = (1, 5)  # the version this module reads and writes; see written_version()
 MAX_SPAN = 2 ** 24  # the largest context_frames / crossfade_frames value a reader accepts (1.3)
 PREFIX = struct.Struct("<8sHHQ")  # magic, major, minor, header length
 MAX_HEADER = 64 << 20
 ALIGN = 8
 ENCODINGS = {"f32": np.dtype("<f4"), "f16": np.dtype("<f2"), "u8": np.dtype("u1"), "u16": np.dtype("<u2")}
 DELTA = {"u8-delta": "u8", "u16-delta": "u16"}  # (1.4) u8 / u16 as channel-major differences, byte planes
-PLAIN = (*ENCODINGS, *DELTA)  # encodings of one number per value
+PLAIN = (*ENCODINGS, *DELTA)  # encodings of one number per value (and (1.5) the acB ones, see ac_bits)
 CODECS = ("raw", "zlib")
 MAX_CODEBOOK = 1 << 16  # rows of a "vq" codebook (1.4)
 MAX_PARTS = 64  # parts of a "parts" array (1.4)
@@ -67,6 +67,25 @@ DEFAULT_LIMITS = Limits()
 # -- quantization (spec table "Quantization and its error bounds") --------------------------------
 
 
+def ac_bits(encoding: str) -> int | None:
+    """B of a (1.5) arithmetic-coded encoding "acB" or "acB-delta" (B in 1..16), None for any other."""
+    name = encoding[:-len("-delta")] if encoding.endswith("-delta") else encoding
+    digits = name[2:]
+    if name[:2] != "ac" or not digits.isdigit() or digits[0] == "0" or not 1 <= int(digits) <= range_coder.MAX_BITS:
+        return None
+    return int(digits)
+
+
+def _plain(encoding: str) -> bool:
+    return encoding in PLAIN or ac_bits(encoding) is not None
+
+
+def _levels(encoding: str) -> int:
+    """The top integer of a fixed-point encoding: 2^bits - 1."""
+    bits = ac_bits(encoding)
+    return (1 << bits) - 1 if bits is not None else int(np.iinfo(ENCODINGS[encoding]).max)
+
+
 def _channels(a: np.ndarray) -> np.ndarray:
     """(N, ...) -> (N, channels): every axis but the first flattened."""
     if a.ndim == 0:
@@ -92,8 +111,8 @@ def quantize(array, encoding: str) -> tuple[np.ndarray, dict]:
     channel count (every axis but the first flattened). Raises ValueError for non-finite values, values
     beyond +-65504 under f16, and unknown encodings.
     """
-    if encoding not in ENCODINGS:
-        raise ValueError(f"unknown encoding {encoding!r} (expected one of {sorted(ENCODINGS)})")
+    if encoding not in ENCODINGS and ac_bits(encoding) is None:
+        raise ValueError(f"unknown encoding {encoding!r} (expected one of {sorted(ENCODINGS)} or acB, B = 1..16)")
     a = np.asarray(array, dtype=np.float32)
     if not np.all(np.isfinite(a)):
         raise ValueError("non-finite values cannot be written")
@@ -101,10 +120,10 @@ def quantize(array, encoding: str) -> tuple[np.ndarray, dict]:
         raise ValueError(f"values up to {np.abs(a).max():g} do not fit f16 (|x| <= 65504)")
     if encoding in ("f32", "f16"):
         return a.astype(ENCODINGS[encoding]), {}
-    levels = np.iinfo(ENCODINGS[encoding]).max
+    levels = _levels(encoding)
     offset, scale = _affine(a, levels)
     q = np.rint((_channels(a) - offset.astype(np.float64)) / np.where(scale > 0, scale, 1.0))
-    stored = np.clip(q, 0, levels).astype(ENCODINGS[encoding]).reshape(a.shape)
+    stored = np.clip(q, 0, levels).astype(ENCODINGS.get(encoding, np.dtype("<u2"))).reshape(a.shape)
     return stored, {"offset": offset.tolist(), "scale": scale.tolist()}
 
 
@@ -112,7 +131,7 @@ def dequantize(stored: np.ndarray, encoding: str, params: dict | None = None) ->
     """Stored values (N, ...) -> float32 values of the same shape (computed in float64, then cast)."""
     if encoding in ("f32", "f16"):
         return stored.astype(np.float32)
-    if encoding not in ENCODINGS:
+    if encoding not in ENCODINGS and ac_bits(encoding) is None:
         raise ValueError(f"unknown encoding {encoding!r}")
     q = _channels(stored)
     with np.errstate(over="ignore"):  # numbers beyond float32 become inf, which readers refuse
@@ -126,16 +145,16 @@ def dequantize(stored: np.ndarray, encoding: str, params: dict | None = None) ->
 def error_bound(array, encoding: str):
     """The spec's bound on |dequantize(quantize(array)) - array|, broadcastable against (N, C).
 
-    f32: 0.0; f16: per value (N, C); u8 / u16: per channel (C,) = scale / 2 + 2^-23 max |x|.
+    f32: 0.0; f16: per value (N, C); u8 / u16 / acB: per channel (C,) = scale / 2 + 2^-23 max |x|.
     """
     x = _channels(np.asarray(array, dtype=np.float32)).astype(np.float64)
-    if encoding not in ENCODINGS:
+    if encoding not in ENCODINGS and ac_bits(encoding) is None:
         raise ValueError(f"unknown encoding {encoding!r}")
     if encoding == "f32":
         return 0.0
     if encoding == "f16":
         return np.where(np.abs(x) >= 2.0**-14, np.abs(x) * 2.0**-11, 2.0**-25)
-    _, scale = _affine(x.astype(np.float32), np.iinfo(ENCODINGS[encoding]).max)
+    _, scale = _affine(x.astype(np.float32), _levels(encoding))
     biggest = np.abs(x).max(axis=0) if x.shape[0] else np.zeros(x.shape[1])
     return scale / 2.0 + 2.0**-23 * biggest
 
@@ -146,9 +165,13 @@ def error_bound(array, encoding: str):
 def written_version(kind: str, camera_models=(), segments=(), encodings=()) -> tuple[int, int]:
     """The version a writer puts in a file of `kind` whose cameras have `camera_models`, whose
     `segments` (Segment objects) are these and whose attributes use `encodings` (strings, see save):
-    the lowest that holds it, 1.4 with an encoding other than f32, f16, u8 and u16 (added in 1.4), 1.3
-    with a segment's context or crossfade (added in 1.3), 1.2 with a camera other than a pinhole (added
-    in 1.2), 1.1 for "sh" (added in 1.1), else 1.0, which every 1.x reader opens."""
+    the lowest that holds it: 1.5 with an arithmetic-coded part (acB), 1.4 with another encoding than
+    f32, f16, u8 and u16 (added in 1.4), 1.3 with a segment's context or crossfade (added in 1.3), 1.2
+    with a camera other than a pinhole (added in 1.2), 1.1 for "sh" (added in 1.1), else 1.0, which
+    every 1.x reader opens."""
+    parts = [p.partition(":")[0].rpartition("/")[2] for e in encodings for p in e.split("+")]
+    if any(ac_bits(p) is not None for p in parts):
+        return (1, 5)
     if any(e not in ENCODINGS for e in encodings):
         return (1, 4)
     if any(s.crossfade_frames or any(s.context_frames) for s in segments):
@@ -162,9 +185,9 @@ def encoding_parts(encoding: str) -> list[tuple[str, int]] | None:
     """The (encoding, channels) parts of a parts encoding "ENC:WIDTH+ENC:WIDTH..." (see save), None for
     an encoding of the whole array (one of PLAIN, "vq", "vq/ENC"); ValueError if unknown."""
     if ":" not in encoding:
-        if encoding not in PLAIN and not (encoding == "vq" or (encoding[:3] == "vq/" and encoding[3:] in PLAIN)):
-            raise ValueError(f"unknown encoding {encoding!r} (expected one of {list(PLAIN)}, 'vq', "
-                             "'vq/ENCODING' or parts 'ENCODING:CHANNELS+...')")
+        if not _plain(encoding) and not (encoding == "vq" or (encoding[:3] == "vq/" and _plain(encoding[3:]))):
+            raise ValueError(f"unknown encoding {encoding!r} (expected one of {list(PLAIN)}, acB or acB-delta "
+                             "(B = 1..16), 'vq', 'vq/ENCODING' or parts 'ENCODING:CHANNELS+...')")
         return None
     parts = []
     for text in encoding.split("+"):
@@ -201,6 +224,13 @@ def encode_array(values: np.ndarray, encoding: str, blob) -> dict:
         dtype = np.dtype("u1") if len(rows) <= 256 else np.dtype("<u2")
         return {**head, "encoding": "vq", "codebook": encode_array(rows, encoding[3:] or "f32", blob),
                 "data": blob(index.reshape(-1).astype(dtype).tobytes())}
+    bits = ac_bits(encoding)
+    if bits is not None:  # (1.5) B-bit integers, channel-major (differences), arithmetic-coded
+        stored, params = quantize(values, encoding.removesuffix("-delta"))
+        symbols = np.ascontiguousarray(_channels(stored).T).astype(np.int64)
+        if encoding.endswith("-delta"):
+            symbols[:, 1:] = (symbols[:, 1:] - symbols[:, :-1]) % (1 << bits)
+        return {**head, "encoding": encoding, **params, "data": blob(range_coder.encode(symbols, bits), "raw")}
     stored, params = quantize(values, DELTA.get(encoding, encoding))
     if encoding in DELTA:  # channel-major, each value minus the one before it (modulo 2^bits)
         stored = np.ascontiguousarray(_channels(stored).T)
@@ -496,7 +526,7 @@ def _plan(spec, shape: tuple, where: str, inside: str = "") -> int:
         raise ValueError(f"{where}: shape {spec['shape']} disagrees with count and degrees, expected {list(shape)}")
     encoding = _get(spec, "encoding", str, where)
     channels = math.prod(shape[1:])
-    if encoding in PLAIN:
+    if _plain(encoding):
         return 0
     if encoding == "vq" and inside != "codebook":
         book = _get(spec, "codebook", dict, where)
@@ -536,6 +566,19 @@ def _array(spec, shape: tuple, section: memoryview, where: str) -> np.ndarray:
 
 def _values(spec: dict, shape: tuple, section: memoryview, where: str) -> np.ndarray:
     encoding, channels = spec["encoding"], math.prod(shape[1:])
+    bits = ac_bits(encoding)
+    if bits is not None:  # (1.5) arithmetic-coded B-bit integers, channel-major
+        data = _blob(_get(spec, "data", dict, where), section, None, where)
+        try:
+            symbols = range_coder.decode(data, channels, shape[0], bits)
+        except ValueError as e:
+            raise ValueError(f"{where}: {e}") from e
+        if encoding.endswith("-delta"):
+            symbols = np.cumsum(symbols, axis=1, dtype=np.uint16) & np.uint16((1 << bits) - 1)
+        try:
+            return dequantize(np.ascontiguousarray(symbols.T).reshape(shape), encoding.removesuffix("-delta"), spec)
+        except (ValueError, TypeError) as e:
+            raise ValueError(f"{where}: {e}") from e
     if encoding == "parts":  # (1.4) consecutive channels, each part decoded into its place
         out, at = np.empty((shape[0], channels), np.float32), 0
         for j, part in enumerate(spec["parts"]):
@@ -583,7 +626,7 @@ def _blob(spec: dict, section: memoryview, size: int | None, where: str):
         raise ValueError(f"{where}: blob [{offset}, {offset + length}) lies outside the "
                          f"{len(section)}-byte data section")
     data = section[offset:offset + length]
-    if codec not in (CODECS if size is not None else ("raw",)):  # a decoder's size is not implied: raw only
+    if codec not in (CODECS if size is not None else ("raw",)):  # sizes not implied (decoders, acB): raw only
         raise ValueError(f"{where}: unsupported codec {codec!r}")
     if codec == "zlib":
         inflater = zlib.decompressobj()

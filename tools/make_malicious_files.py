@@ -175,6 +175,24 @@ def _compact(edit=None, section_edit=None) -> bytes:
     return seal(header, section, (1, 4))
 
 
+AC = {"features": "ac8:3+ac5-delta:6", "position": "ac12-delta:3+ac6:9", "opacity": "ac7"}
+
+
+def _ac(edit=None, section_edit=None) -> bytes:
+    """(1.5) The base model with arithmetic-coded arrays, `edit(header)` and
+    `section_edit(header, section) -> section` applied."""
+    header, section, _ = split(stg_format.dumps(stg_format.loads(_base()), AC, codec="raw"))
+    if edit:
+        edit(header)
+    if section_edit:
+        section = section_edit(header, section)
+    return seal(header, section, (1, 5))
+
+
+def _opacity(header):
+    return header["segments"][0]["attributes"]["opacity"]
+
+
 def _features(header):
     return header["segments"][0]["attributes"]["features"]
 
@@ -280,6 +298,22 @@ def stg_fixtures() -> dict[str, tuple[bytes, dict]]:
         "parts_cover_too_few.stg": (_compact(lambda h: h["segments"][0]["attributes"]["position"]["parts"].pop()),
                                     refused("the parts cover 3 channels, the array has 12")),
         "codebook_bomb.stg": (_codebook_bomb(), refused("would take .* bytes in memory")),
+        # format 1.5: arithmetic-coded fixed point (formats/stg-v1.md, "Arithmetic-coded fixed point")
+        "ac_arrays.stg": (_ac(), loads),
+        "ac_zlib_blob.stg": (_ac(lambda h: _opacity(h)["data"].update(codec="zlib")),
+                             refused("attribute 'opacity': unsupported codec 'zlib'")),
+        "ac_first_byte_1.stg": (_ac(section_edit=_poke(_opacity, bytes([1]))),
+                                refused("attribute 'opacity': arithmetic-coded data must start with a 0 byte")),
+        "ac_cut_short.stg": (_ac(lambda h: _opacity(h)["data"].update(length=_opacity(h)["data"]["length"] - 1)),
+                             refused("attribute 'opacity': arithmetic-coded data ends before its 20 values")),
+        "ac_byte_after.stg": (_ac(lambda h: _opacity(h)["data"].update(length=_opacity(h)["data"]["length"] + 1)),
+                              refused("attribute 'opacity': arithmetic-coded data has 1 bytes after its 20 values")),
+        "ac_17_bits.stg": (_ac(lambda h: _opacity(h).update(encoding="ac17")),
+                           refused("attribute 'opacity': unknown encoding 'ac17'")),
+        "ac_leading_zero.stg": (_ac(lambda h: _opacity(h).update(encoding="ac07")),
+                                refused("attribute 'opacity': unknown encoding 'ac07'")),
+        "ac_without_scale.stg": (_ac(lambda h: _opacity(h).pop("scale")),
+                                 refused("attribute 'opacity': ac7 needs lists 'offset' and 'scale' of 1 numbers")),
     }
 
 

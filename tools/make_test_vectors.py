@@ -115,6 +115,12 @@ def _compact(full: Model) -> tuple[Model, dict]:
     return Model("full", FPS, [compact], cameras=full.cameras, bounds=full.bounds, provenance=full.provenance), encodings
 
 
+#: (1.5) arithmetic-coded fixed point at several bit depths, with and without differences, as a whole
+#: array, as parts beside a 1.0 encoding and as a codebook.
+AC_ENCODINGS = {"opacity": "ac8", "t_center": "ac12-delta", "t_scale": "ac16", "position": "ac14:3+ac10-delta:9",
+                "rotation": "vq/ac12", "scale": "ac11-delta", "features": "ac8:3+ac3-delta:3+u8:3"}
+
+
 def main() -> None:
     rng = np.random.default_rng(2024)
     cam = _camera()
@@ -141,7 +147,8 @@ def main() -> None:
     compact, compact_encodings = _compact(full)
     vectors = [("lite", lite, {}, weights), ("full", full, {}, weights), ("full_quantized", full, quantized, weights),
                ("sh", sh, {}, weights), ("full_fisheye", fisheye, {}, weights),
-               ("full_crossfade", crossfade, {}, fade_weights), ("full_compact", compact, compact_encodings, weights)]
+               ("full_crossfade", crossfade, {}, fade_weights), ("full_compact", compact, compact_encodings, weights),
+               ("full_ac", full, AC_ENCODINGS, weights)]
     index = {}
     for name, model, encodings, model_weights in vectors:
         times = [0.0, 0.3, 0.45, 0.62, 0.95] if name == "full_crossfade" else [0.0, 0.25, 0.62, 0.95]

@@ -270,10 +270,18 @@ def snapped(values: np.ndarray, choice, groups: list[slice]) -> np.ndarray:
     return stg_format.dequantize(qs.astype(stored.dtype).reshape(values.shape), enc, params)
 
 
+def compact_container(option) -> str:
+    """The encoding that holds a compact option's values: "acB" for B bits (format 1.5's
+    arithmetic-coded fixed point), "u8" for 0 bits (a constant), "f16" / "f32" as they are."""
+    if isinstance(option, str):
+        return option
+    return f"ac{option}" if option else "u8"
+
+
 def compact_snapped(values: np.ndarray, choice: list, groups: list[slice]) -> np.ndarray:
     """`values` (N, ...) as a reader decodes them after writing with a compact choice: one option of
-    COMPACT_OPTIONS per group, each group in its own container (see compact_encoding); 0 bits: the
-    group's channels hold their mean."""
+    COMPACT_OPTIONS per group, each group in its own container (compact_container); B bits: 2^B
+    levels from the channel's minimum to its maximum; 0 bits: the group's channels hold their mean."""
     x = values.reshape(values.shape[0], -1).copy()
     for group, option in zip(groups, choice):
         part = x[:, group]
@@ -281,21 +289,28 @@ def compact_snapped(values: np.ndarray, choice: list, groups: list[slice]) -> np
             mean = part.mean(axis=0, dtype=np.float64) if len(part) else np.zeros(part.shape[1])
             x[:, group] = np.broadcast_to(mean.astype(np.float32), part.shape)
         else:
-            x[:, group] = snapped(part, option if isinstance(option, str) else [option], [slice(0, part.shape[1])])
+            enc = compact_container(option)
+            stored, params = stg_format.quantize(part, enc)
+            x[:, group] = stg_format.dequantize(stored, enc, params)
     return x.reshape(values.shape)
 
 
 def compact_encoding(values: np.ndarray, choice: list, groups: list[slice], level: int) -> str:
-    """The format 1.4 encoding string of compact-snapped `values` (N, ...) (see format.save): a part
-    per group, "u8" (up to 8 bits) or "u16", as differences ("-delta") where zlib at `level` stores
-    those in fewer bytes, or "f16" / "f32"; a single part is the plain encoding."""
+    """The format 1.5 encoding string of compact-snapped `values` (N, ...) (see format.save): a part
+    per group in its compact_container, the arithmetic-coded ones as differences ("acB-delta") where
+    those take fewer bytes (u8 and u16 where zlib at `level` says so); a single part is the plain
+    encoding."""
     x = values.reshape(values.shape[0], -1)
     parts = []
     for group, option in zip(groups, choice):
-        enc = option if isinstance(option, str) else container([max(option, 1)])
-        if enc in ("u8", "u16"):
-            sizes = {e: len(zlib.compress(stg_format.encode_array(x[:, group], e, lambda b: b)["data"], level))
-                     for e in (enc, enc + "-delta")}
+        enc = compact_container(option)
+        if enc != "f32" and enc != "f16":
+            def size(e: str) -> int:
+                sizes = []
+                stg_format.encode_array(x[:, group], e, lambda b, codec="zlib": sizes.append(
+                    len(b) if codec == "raw" else len(zlib.compress(b, level))))
+                return sum(sizes)
+            sizes = {e: size(e) for e in (enc, enc + "-delta")}
             enc = min(sizes, key=lambda e: (sizes[e], e))
         parts.append((enc, group.stop - group.start))
     if len(parts) == 1:
@@ -333,8 +348,10 @@ def attribute_bytes(model: Model, encodings: dict | None = None, level: int = 6)
     for seg in model.segments:
         for name, values in seg.arrays().items():
             sizes = []
-            stg_format.encode_array(values, encodings.get(name, "f32"),
-                                    lambda payload: sizes.append(len(zlib.compress(payload, level))))
+
+            def blob(payload: bytes, codec: str = "zlib") -> None:  # arithmetic-coded data is stored raw
+                sizes.append(len(payload) if codec == "raw" else len(zlib.compress(payload, level)))
+            stg_format.encode_array(values, encodings.get(name, "f32"), blob)
             out[name] += sum(sizes)
     return out
 

@@ -11,10 +11,9 @@
 Quantisation-aware fine-tuning renders what a reader decodes: the raw parameters become the file's
 attributes (as stg_train.raw.to_file_arrays with time scale 1, in float32), each attribute goes
 through the writer's quantisation at the chosen bits (compress.compact_snapped, the very function the
-web preset's search and writer use: per-channel offset = min and scale = (max - min) / levels of the
-current values, integers rounded to multiples of 2^(container bits - bits)), and the Gaussians are
-evaluated from those values (`written`: the snapped values once more through the container, as the
-writer stores them). The forward value is exactly the decoded value (float32); the gradient
+web preset's search and writer use: B bits are 2^B levels per channel, offset = min and scale =
+(max - min) / (2^B - 1) of the current values), and the Gaussians are evaluated from those values
+(`written`: the snapped values once more through their encoding, as the writer stores them). The forward value is exactly the decoded value (float32); the gradient
 passes straight through the rounding (d quantised / d value = 1).
 """
 from __future__ import annotations
@@ -27,7 +26,7 @@ from stg_runtime import format as stg_format
 from stg_runtime.model import Segment
 
 from ..params import Gaussians
-from .compress import COMPACT_OPTIONS, channel_groups, compact_snapped, container
+from .compress import COMPACT_OPTIONS, channel_groups, compact_container, compact_snapped
 
 
 def file_tensors(raw: dict[str, Tensor]) -> dict[str, Tensor]:
@@ -48,11 +47,11 @@ def file_tensors(raw: dict[str, Tensor]) -> dict[str, Tensor]:
 def written(values: np.ndarray, choice: list, groups: list[slice]) -> np.ndarray:
     """`values` (N, ...) float32 as a reader decodes the file after the web writer stores their
     compact-snapped values (compress.compact_snapped, one COMPACT_OPTIONS entry per channel group):
-    each group's container (u8 / u16, or f16 / f32) quantised and dequantised once more as
+    each group's encoding (compress.compact_container) quantised and dequantised once more as
     format.save does (it finds a scale up to an ulp larger than the snapping's)."""
     x = compact_snapped(np.asarray(values, np.float32), list(choice), groups).reshape(values.shape[0], -1)
     for group, option in zip(groups, choice):
-        enc = option if isinstance(option, str) else container([max(option, 1)])
+        enc = compact_container(option)
         stored, params = stg_format.quantize(x[:, group], enc)
         x[:, group] = stg_format.dequantize(stored, enc, params)
     return x.reshape(values.shape)

@@ -172,22 +172,23 @@ def test_the_least_important_go_first():
 
 
 def test_web_preset_writes_what_it_measured(tmp_path):
-    """A web file is format 1.4 with per-group parts; it decodes to the values compress returned (up to
-    float32 rounding of a codebook-free re-quantization), and its report names every part."""
+    """A web file is format 1.5 with per-group arithmetic-coded parts; it decodes to the values compress
+    returned (up to float32 rounding of a re-quantization), and its report names every part."""
     import struct
 
     model = small_model("full", n=1500, seed=4)
     out, settings = compress(model, "web")
-    assert ":" in settings.encodings["position"] and settings.encodings["position"].startswith("u16-delta:3+")
+    assert ":" in settings.encodings["position"] and settings.encodings["position"].startswith("ac")
     path = tmp_path / "web.stg"
     stg_format.save(out, path, **settings.save_kwargs())
-    assert struct.unpack_from("<HH", path.read_bytes(), 8) == (1, 4)
+    assert struct.unpack_from("<HH", path.read_bytes(), 8) == (1, 5)
+    assert all(e.partition(":")[0].startswith("ac") for e in settings.encodings["position"].split("+"))
     back = stg_format.load(path)
     for a, b in zip(out.segments, back.segments):
         for name, values in a.arrays().items():
             np.testing.assert_allclose(getattr(b, name), values, rtol=0, atol=2.0 ** -20 * max(np.abs(values).max(), 1))
     text = report(model, out, settings).format()
-    assert "position      parts" in text and "(u16-delta:3+" in text and "bits 16" not in text
+    assert "position      parts" in text and "(ac12-delta:3+" in text and "bits 16" not in text
     assert sum(file_attribute_bytes(path).values()) == sum(attribute_bytes(out, settings.encodings, 9).values())
 
 

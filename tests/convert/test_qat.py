@@ -13,7 +13,8 @@ from stg_train.convert.qat import (fake_quantised, file_tensors, gaussians_of_fi
 
 from .test_finetune import scene, train_psnr  # noqa: F401  (the module's fixture)
 
-#: Every kind of part the web writer makes: u8 (with and without differences), u16, a constant, f16, f32.
+#: Every kind of part the web writer makes: acB at 1 to 12 bits (with or without differences), a
+#: constant (u8), f16, f32.
 BITS = {"opacity": [5], "t_center": [10], "t_scale": [12], "position": [12, 7, 3, 1], "rotation": [4, "f16"],
         "scale": [6], "features": [6, 0, "f32"]}
 
@@ -26,7 +27,9 @@ def test_forward_is_exactly_what_the_written_file_decodes(scene):
         forward = quantised_tensors(params.raw, BITS, seg, model.kind)
     written = _with_segments(model, [snapped_segment(params.raw, BITS, seg, model.kind, seg.decoder)])
     encodings = {name: _encoding(written, name, ("compact", BITS[name]), 9) for name in BITS}
-    assert "-delta" in "".join(encodings.values()) or "u16" in encodings["t_scale"]
+    assert encodings["t_scale"].removesuffix("-delta") == "ac12" and encodings["features"].startswith("ac6")
+    assert encodings["position"].replace("-delta", "") == "ac12:3+ac7:3+ac3:3+ac1:3"
+    assert "+u8:3+f32:3" in encodings["features"] and encodings["rotation"].endswith("+f16:4")
     back = stg_format.loads(stg_format.dumps(written, encodings=encodings, codec="zlib", level=9), "<qat>")
     for name in BITS:
         decoded = getattr(back.segments[0], name)
