@@ -9,6 +9,7 @@
 //   decodeSegment(model, i, section: {length, bytes(offset, length)}) -> Promise<segment arrays>
 //   verifyChecksum(bytes) -> Promise<void>                                    SHA-256 of all but the last 32 bytes
 //   segmentsAt(model, t) -> [{index, tau, weight}]                           what to show at t (two in a crossfade)
+//   acDecode(data, channels, count, bits) -> Uint16Array                      (1.5) an acB blob's symbols, channel-major
 //
 // A model: {name, kind, fps, numFrames, startFrame, duration, cameras: [camera], bounds, provenance,
 // fileSize, segments: [{startFrame, numFrames, count, positionDegree, rotationDegree, channels,
@@ -21,7 +22,7 @@ import { readMlp } from "./onnx-mlp.js";
 import { sha256 } from "./sha256.js";
 
 export const MAGIC = [0x89, 0x53, 0x54, 0x47, 0x0d, 0x0a, 0x1a, 0x0a];
-export const VERSION = [1, 4];
+export const VERSION = [1, 5];
 export const PREFIX_SIZE = 20;
 export const MAX_HEADER = 64 * 2 ** 20;
 export const KINDS = ["lite", "full", "sh"];
@@ -29,10 +30,22 @@ export const ACTIVATIONS = ["sigmoid", "clamp", "identity"];
 export const ATTRIBUTES = ["opacity", "t_center", "t_scale", "position", "rotation", "scale", "features"];
 export const SH_CHANNELS = [3, 12, 27, 48];
 export const MAX_SPAN = 2 ** 24;  // the largest context_frames / crossfade_frames value a reader accepts (1.3)
-const BYTES = { f32: 4, f16: 2, u8: 1, u16: 2, "u8-delta": 1, "u16-delta": 2 };  // the plain encodings
+const BYTES = { f32: 4, f16: 2, u8: 1, u16: 2, "u8-delta": 1, "u16-delta": 2 };  // the plain encodings (and (1.5) acB, acBits)
 const CODECS = ["raw", "zlib"];
 export const MAX_CODEBOOK = 2 ** 16;  // rows of a "vq" codebook (1.4)
 export const MAX_PARTS = 64;  // parts of a "parts" array (1.4)
+export const MAX_AC_BITS = 16;  // B of an "acB" / "acB-delta" encoding (1.5)
+
+/** B of a (1.5) arithmetic-coded encoding "acB" or "acB-delta" (B in 1..16, no leading zero), null for
+ * any other (format.py ac_bits). */
+export function acBits(encoding) {
+  const m = /^ac([1-9][0-9]*)(-delta)?$/.exec(encoding);
+  if (!m) return null;
+  const bits = Number(m[1]);
+  return bits <= MAX_AC_BITS ? bits : null;
+}
+
+const isPlain = (encoding) => Object.hasOwn(BYTES, encoding) || acBits(encoding) !== null;
 
 /** The reader's defaults, those of stg_runtime.format.Limits (formats/stg-v1.md, "Limits"). */
 export const DEFAULT_LIMITS = Object.freeze({
@@ -353,8 +366,9 @@ const isObject = (v) => v !== null && typeof v === "object" && !Array.isArray(v)
 const sameShape = (a, b) => a.length === b.length && a.every((v, i) => v === b[i]);
 
 /** Check an array entry's structure against `shape` before any of it is decoded (format.py _plan): its
- * shape, its encoding, (1.4) a "vq" codebook's shape and a "parts" entry's parts. Returns the float32
- * values its decoding takes beyond the array itself (codebooks). inside: "codebook" or "part". */
+ * shape, its encoding (a plain one: BYTES' or (1.5) acB), (1.4) a "vq" codebook's shape and a "parts"
+ * entry's parts. Returns the float32 values its decoding takes beyond the array itself (codebooks).
+ * inside: "codebook" or "part". */
 function plan(spec, shape, where, inside = "") {
   if (!isObject(spec)) fail(`${where}: not a JSON object`);
   const declared = get(spec, "shape", "list", where);
@@ -363,7 +377,7 @@ function plan(spec, shape, where, inside = "") {
   }
   const encoding = get(spec, "encoding", "str", where);
   const channels = shape.slice(1).reduce((a, b) => a * b, 1);
-  if (Object.hasOwn(BYTES, encoding)) return 0;
+  if (isPlain(encoding)) return 0;
   if (encoding === "vq" && inside !== "codebook") {
     const book = get(spec, "codebook", "dict", where);
     const rows = Array.isArray(book.shape) && book.shape.length ? book.shape[0] : null;
@@ -396,9 +410,93 @@ function plan(spec, shape, where, inside = "") {
   return fail(`${where}: unknown encoding '${encoding}'${inside ? ` (not allowed in a ${inside})` : ""}`);
 }
 
+// -- (1.5) the adaptive binary range coder of "acB" (formats/stg-v1.md, "Arithmetic-coded fixed point";
+// stg_runtime/range_coder.py) ------------------------------------------------------------------------
+
+const PROB_BITS = 11;  // probabilities of a 0 in units of 2^-11
+const PROB_ONE = 1 << PROB_BITS;
+const ADAPT_SHIFT = 5;  // a probability moves 1/32 of the way towards each coded bit
+const TOP_SHIFT = 24;  // the range is renormalised (a byte shifted in) while below 2^24
+const SIGN = -0x80000000;  // int32 sign bit
+
+/** Decode `channels` x `count` symbols of `bits` bits from the coded bytes `data` (Uint8Array):
+ * Uint16Array, channel-major. Throws Error (range_coder.decode's messages) when `data` is not the
+ * stream of exactly that many symbols: first byte not 0, ends early, bytes left over.
+ * range, code and bound are the spec's unsigned 32-bit integers held as int32 bit patterns: every step
+ * is exact modulo 2^32 (bound = (range >>> 11) * p < 2^32 by Math.imul, code - bound and range - bound
+ * are taken only where they are >= 0), an unsigned comparison flips both sign bits, and range < 2^24
+ * is (range >>> 24) === 0. Twice as fast in V8 as the same steps on doubles kept unsigned by `>>> 0`. */
+export function acDecode(data, channels, count, bits) {
+  const n = channels * count;
+  if (!data.length || data[0] !== 0) fail("arithmetic-coded data must start with a 0 byte");
+  const early = `arithmetic-coded data ends before its ${n} values`;
+  const size = data.length;
+  if (size < 5) fail(early);
+  const out = new Uint16Array(n);
+  const probs = new Uint16Array(1 << bits);
+  const leaf = 1 << bits;
+  let range = -1, code = (data[1] << 24) | (data[2] << 16) | (data[3] << 8) | data[4], at = 5;  // 2^32 - 1, bytes 1-4
+  for (let c = 0; c < channels; c++) {
+    probs.fill(PROB_ONE >> 1);
+    for (let i = 0, k = c * count; i < count; i++, k++) {
+      let node = 1;
+      while (node < leaf) {  // `bits` bits, most significant first, down the tree
+        const p = probs[node];
+        const bound = Math.imul(range >>> PROB_BITS, p);
+        if ((code ^ SIGN) < (bound ^ SIGN)) {  // code < bound, unsigned: a 0
+          range = bound;
+          probs[node] = p + ((PROB_ONE - p) >> ADAPT_SHIFT);
+          node <<= 1;
+        } else {
+          code = (code - bound) | 0;
+          range = (range - bound) | 0;
+          probs[node] = p - (p >> ADAPT_SHIFT);
+          node = (node << 1) | 1;
+        }
+        while (range >>> TOP_SHIFT === 0) {  // range < 2^24: a byte in
+          if (at >= size) fail(early);
+          range <<= 8;
+          code = (code << 8) | data[at++];
+        }
+      }
+      out[k] = node - leaf;
+    }
+  }
+  if (at !== size) fail(`arithmetic-coded data has ${size - at} bytes after its ${n} values`);
+  return out;
+}
+
+/** Values of an "acB" / "acB-delta" entry (1.5), checked in format.py's order: the blob (raw only),
+ * the coded stream, then offset and scale. */
+async function acValues(spec, count, channels, bits, section, where) {
+  const data = await blob(get(spec, "data", "dict", where), section, null, where);
+  let symbols;
+  try {
+    symbols = acDecode(data, channels, count, bits);
+  } catch (e) {
+    fail(`${where}: ${e.message}`);
+  }
+  const base = spec.encoding.replace("-delta", "");
+  const offset = numbers(spec.offset, channels), scale = numbers(spec.scale, channels);
+  if (!offset || !scale) fail(`${where}: ${base} needs lists 'offset' and 'scale' of ${channels} numbers`);
+  const out = new Float32Array(count * channels);
+  const delta = spec.encoding.endsWith("-delta"), mask = (1 << bits) - 1;
+  for (let c = 0; c < channels; c++) {
+    const o = offset[c], s = scale[c];
+    let q = 0;
+    for (let i = 0, k = c * count, j = c; i < count; i++, k++, j += channels) {
+      q = delta ? (q + symbols[k]) & mask : symbols[k];  // (-delta: running sums modulo 2^B)
+      out[j] = o + s * q;  // float64, then float32
+    }
+  }
+  return out;
+}
+
 /** Values of a plain array entry (checked by plan): Float32Array of count x channels, C-order. */
 async function plainValues(spec, count, channels, section, where) {
   const encoding = spec.encoding, n = count * channels;
+  const bits = acBits(encoding);
+  if (bits !== null) return acValues(spec, count, channels, bits, section, where);
   let offset = null, scale = null;
   const base = encoding.replace("-delta", "");
   if (base === "u8" || base === "u16") {  // checked before the blob is decoded

@@ -2,7 +2,8 @@
 // first, then each segment's bytes when playback needs them (the segment at the playhead and the one
 // after it). The file's SHA-256 covers every byte, so it is checked once every byte has arrived; until
 // then each segment is guarded by the reader's own checks (the header's Limits against the file's
-// size, blob bounds, sizes, zlib ends, finite values, the decoder's MLP family).
+// size, blob bounds, sizes, zlib ends, (1.5) arithmetic-coded streams' ends, finite values, the
+// decoder's MLP family).
 //
 //   openRanged(url, name, limits) -> {model, whole: Uint8Array} (the server sent the whole file, or the
 //       file has one segment) or {model, file: RangedFile} (segments to fetch with file.segment(i))
@@ -33,7 +34,7 @@ function blobsOf(entry) {  // [offset, end) of every blob a segment entry names 
       out.push([blob.offset, blob.offset + blob.length]);
     }
   };
-  const walk = (a) => {  // an array's blob, its codebook's and its parts' (format 1.4)
+  const walk = (a) => {  // an array's blob, its codebook's and its parts' (format 1.4; acB's are data blobs too)
     if (!a || typeof a !== "object") return;
     add(a.data);
     walk(a.codebook);
