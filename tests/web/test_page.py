@@ -1,6 +1,7 @@
 """The web player (stg_runtime/web) in real headless Chromium with software WebGL2 (SwiftShader): its
 snapshot() matches Player.render at >= 40 dB for every test vector (lite with two segments, full, full
-quantized, sh, full through a fisheye, two full segments crossfaded) at 3 cameras x 3 times (and inside
+quantized, sh, full through a fisheye, two full segments crossfaded, format 1.4's compact encodings, 1.5's
+arithmetic-coded ones) at 3 cameras x 3 times (and inside
 each crossfade; there the frame loop's canvas too, and the crossfades of a streamed video); the depth
 order follows time (two Gaussians crossing in depth); every malicious fixture, and fuzzed files the
 Python reader refuses, end in a message in the page within 5 s; long videos stream by range requests; the controls work; and a
@@ -32,7 +33,7 @@ from stg_runtime.web.export import export_web  # noqa: E402
 ROOT = Path(__file__).resolve().parents[2]
 VECTORS = ROOT / "formats" / "vectors"
 MALICIOUS = ROOT / "tests" / "runtime" / "malicious"
-NAMES = ["lite", "full", "full_quantized", "sh", "full_fisheye", "full_crossfade", "full_compact"]
+NAMES = ["lite", "full", "full_quantized", "sh", "full_fisheye", "full_crossfade", "full_compact", "full_ac"]
 MIN_PSNR = 40.0
 
 
@@ -113,14 +114,15 @@ def test_vector_matches_the_player(site, browser, name, path):
 
 
 def test_a_web_preset_file_matches_the_player(site, browser):
-    """stg-convert compress --preset web (format 1.4: parts, differences) of the demo model, played by
-    the page and by the Player at the first frame and later, from the file's first camera."""
+    """stg-convert compress --preset web (format 1.5: parts of acB / acB-delta arrays) of the demo model,
+    played by the page and by the Player at the first frame and later, from the file's first camera."""
     from stg_runtime.demo import demo_model
     from stg_train.convert.compress import compress
 
     folder, url = site
     model, settings = compress(demo_model("full", num_frames=4), "web")
     assert any(":" in e for e in settings.encodings.values())
+    assert any(stg_format.ac_bits(p.split(":")[0]) for e in settings.encodings.values() for p in e.split("+"))
     stg_format.save(model, folder / "demo.web.stg", **settings.save_kwargs())
     player = Player(folder / "demo.web.stg", device="cpu")
     open_model(browser, url, "demo.web.stg")
@@ -396,6 +398,10 @@ def ranged_site(tmp_path_factory):
     stg_format.save(model, folder / "long_compact.stg",  # format 1.4: parts, codebooks, differences
                     encodings={"opacity": "vq/u8", "position": "u16-delta:3+vq/f16:9",
                                "features": "u8-delta:1+vq/u8:2"})
+    stg_format.save(model, folder / "long_ac.stg",  # format 1.5: arithmetic-coded arrays, parts, a codebook
+                    encodings={"opacity": "ac16", "t_center": "ac16-delta", "t_scale": "ac16", "rotation": "ac16",
+                               "scale": "ac16-delta", "position": "ac16-delta:3+vq/ac16:9",  # (117 kB: the first
+                               "features": "ac16:1+ac12-delta:2"})  # 64 KiB do not hold segment 0 and 1)
     data = bytearray((folder / "raw.stg").read_bytes())
     data[-40] ^= 0xFF  # the low byte of a float of the last segment (stored raw): only the checksum can tell
     (folder / "long_damaged.stg").write_bytes(bytes(data))
@@ -427,18 +433,20 @@ def test_long_video_streams_segments(ranged_site, browser):
     assert browser.execute_script("return [window.stg.player.file.checked, window.stg.error]") == [True, None]
 
 
-def test_long_compact_video_streams_segments(ranged_site, browser):
-    """A format 1.4 file (parts, codebooks, differences) streams as a 1.3 one: the first frame needs
-    its segment's bytes (with their codebooks and parts) and the one ahead, not the rest."""
+@pytest.mark.parametrize("name", ["long_compact.stg", "long_ac.stg"])
+def test_long_compact_video_streams_segments(ranged_site, browser, name):
+    """A format 1.4 file (parts, codebooks, differences) or 1.5 file (arithmetic-coded arrays, their
+    blobs ordinary data blobs) streams as a 1.3 one: the first frame needs its segment's bytes (with
+    their codebooks and parts) and the one ahead, not the rest."""
     folder, url = ranged_site
-    player = Player(folder / "long_compact.stg", device="cpu")
+    player = Player(folder / name, device="cpu")
     camera = player.cameras[0]
     page.RangeHandler.sent.clear()
-    open_model(browser, url, "long_compact.stg")
+    open_model(browser, url, name)
     image = page.snapshot(browser, camera.to_dict(), 0.0)
     assert page.psnr(image[..., :3], player.render(camera, 0.0)) >= MIN_PSNR
-    sent = sum(n for path, n in page.RangeHandler.sent if path == "/long_compact.stg")
-    size = (folder / "long_compact.stg").stat().st_size
+    sent = sum(n for path, n in page.RangeHandler.sent if path == f"/{name}")
+    size = (folder / name).stat().st_size
     assert sent < 0.75 * size, (sent, size)
     for t in (3.95, 2.5):  # the last segment first: its first blob (a codebook) lies past the one before
         image = page.snapshot(browser, camera.to_dict(), t)
