@@ -11,11 +11,11 @@ model written as the trainer writes it (float32, zlib level 6). Each preset runs
 dataset (the error budget from held-out views and the model's PSNR there) and without (the file's
 cameras, model PSNR assumed 33 dB), as `stg-convert compress` with and without --data.
 
---finetune N (repeatable) adds rows of web with fine-tuning (stg_train.convert.finetune: prune
---prune of the least important, N steps against the training frames, then web within what is left);
---only-finetune skips the presets. --finetune-quantised M (repeatable) then fine-tunes M more steps
-through fake quantisation below the bits web chose and searches again (stg-convert compress
---finetune-quantised M).
+--finetune N (repeatable) adds rows of web with fine-tuning (stg_train.convert.finetune: N steps
+against the training frames pruning --prune of the least important in --prune-stages stages, then
+web within what is left); --only-finetune skips the presets, --preset P (repeatable) keeps only P's
+rows. --finetune-quantised M (repeatable) then fine-tunes M more steps through fake quantisation
+below the bits web chose and searches again (stg-convert compress --finetune-quantised M).
 """
 from __future__ import annotations
 
@@ -60,6 +60,11 @@ def main() -> None:
                     help="fractions pruned before fine-tuning (repeatable; default 0.5)")
     ap.add_argument("--finetune-quantised", type=int, action="append", default=[], metavar="M",
                     help="with --finetune: quantisation-aware steps after it (repeatable; default 0)")
+    ap.add_argument("--prune-stages", type=int, action="append", default=[], metavar="K",
+                    help="with --finetune: prune in K stages while fine-tuning (repeatable; default "
+                         "stg_train.convert.finetune.PRUNE_STAGES)")
+    ap.add_argument("--preset", action="append", choices=list(PRESETS), default=[],
+                    help="only this preset's rows (repeatable; default all)")
     ap.add_argument("--only-finetune", action="store_true", help="skip the presets' rows")
     ap.add_argument("--out", default=None, help="where the compressed files go (default: a temp folder)")
     args = ap.parse_args()
@@ -73,7 +78,8 @@ def main() -> None:
     print(f"{model_path}: {model.kind} model, {sum(s.count for s in model.segments)} Gaussians, "
           f"float32 file {f32} bytes, held-out PSNR {base:.2f} dB ({ds})", flush=True)
     rows = [("float32 (trainer)", f32, sum(s.count for s in model.segments), base, 0.0, 0.0, load_seconds(model_path))]
-    runs = [(preset, True) for preset in PRESETS] + [(preset, False) for preset in PRESETS if preset != "lossless"]
+    presets = args.preset or list(PRESETS)
+    runs = [(preset, True) for preset in presets] + [(preset, False) for preset in presets if preset != "lossless"]
     runs = [] if args.only_finetune else runs
     if args.threads:
         import torch
@@ -82,7 +88,8 @@ def main() -> None:
     for steps in args.finetune:
         for prune in args.prune or [0.5]:
             for quantised in args.finetune_quantised or [0]:
-                rows.append(finetune_row(model_path, ds, out, steps, prune, base, quantised))
+                for stages in args.prune_stages or [None]:
+                    rows.append(finetune_row(model_path, ds, out, steps, prune, base, quantised, stages))
     for preset, with_data in runs:
         name = preset if with_data else f"{preset}, no --data"
         path = out / f"model.{preset}{'' if with_data else '.nodata'}.stg"
@@ -100,19 +107,23 @@ def main() -> None:
               f"{change:+.3f} dB | {seconds:.0f} s | {1000 * load:.0f} ms |")
 
 
-def finetune_row(model_path, ds, out: Path, steps: int, prune: float, base: float, quantised: int = 0) -> tuple:
-    """The table row of web after pruning `prune`, `steps` fine-tuning steps and `quantised`
-    quantisation-aware ones (finetune_file)."""
-    from stg_train.convert.finetune import finetune_file
+def finetune_row(model_path, ds, out: Path, steps: int, prune: float, base: float, quantised: int = 0,
+                 stages: int | None = None) -> tuple:
+    """The table row of web after `steps` fine-tuning steps pruning `prune` in `stages` (default
+    PRUNE_STAGES) and `quantised` quantisation-aware ones (finetune_file)."""
+    from stg_train.convert.finetune import PRUNE_STAGES, finetune_file
 
-    path = out / f"model.web.ft{steps}.p{round(100 * prune)}.q{quantised}.stg"
+    stages = PRUNE_STAGES if stages is None else stages
+    path = out / f"model.web.ft{steps}.p{round(100 * prune)}.k{stages}.q{quantised}.stg"
     start = time.perf_counter()
-    report, info = finetune_file(model_path, path, ds, steps, "web", prune, quantised_steps=quantised)
+    report, info = finetune_file(model_path, path, ds, steps, "web", prune, quantised_steps=quantised,
+                                 stages=stages)
     seconds = time.perf_counter() - start
     print(report.format(), flush=True)
     print(info.format(), flush=True)
     psnr = evaluate_player(Player(path, device="cpu"), ds)["psnr"]
-    name = f"web, prune {prune:g} + fine-tune {steps}" + (f" + quantised {quantised}" if quantised else "")
+    name = (f"web, prune {prune:g} in {stages} + fine-tune {steps}"
+            + (f" + quantised {quantised}" if quantised else ""))
     return (name, report.file_after, report.gaussians_after, psnr, psnr - base,
             seconds, load_seconds(path))
 

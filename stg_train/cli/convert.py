@@ -15,9 +15,11 @@ import warnings
 
 from .common import Parser, error, finite_float, nonnegative_int, positive_float, positive_int
 
-#: The compression presets (stg_train.convert.compress.PRESETS, checked by tests/cli), named here so that
-#: --help does not import the compressor.
+#: The compression presets (stg_train.convert.compress.PRESETS) and fine-tuning's pruning stages
+#: (stg_train.convert.finetune.PRUNE_STAGES), checked by tests/convert/test_finetune.py, named here so
+#: that --help does not import the compressor (or torch).
 PRESET_NAMES = ("lossless", "balanced", "small", "web")
+PRUNE_STAGES = 5
 
 PROG = "stg-convert"
 
@@ -46,9 +48,9 @@ COMPRESS_EPILOG = """presets (the options below override them):
             opacity stays below 1/255 (never drawn) or that no camera of the file sees, Morton order,
             per attribute the cheapest encoding (u8, u16, f16, f32) within the error budget
   small     target: <= 1/8 of the float32 file, <= 0.5 dB loss; also drops peak opacity < 0.01
-  web       <= 0.3 dB loss, the smallest file (format 1.4: readers of 1.3 and older refuse it): as
+  web       <= 0.3 dB loss, the smallest file (format 1.5: readers of 1.4 and older refuse it): as
             small, also drops the least important Gaussians within part of the budget, each channel
-            group in its own container, stored as differences where that is smaller
+            group arithmetic-coded on its own, as differences where that is smaller
 
 The error budget is measured by rendering: the file's cameras at the first, middle and last frame of
 each segment, or with --data the dataset's held-out camera against its ground truth. The report lists
@@ -150,7 +152,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --data: prune, then fine-tune N steps against the training frames before "
                         "quantizing (docs/convert.md, 'Fine-tuning'; needs torch)")
     c.add_argument("--prune-fraction", type=_unit_fraction, default=0.3, metavar="F",
-                   help="with --finetune: the fraction of least important Gaussians dropped first (default 0.3)")
+                   help="with --finetune: the fraction of least important Gaussians dropped (default 0.3)")
+    c.add_argument("--prune-stages", type=positive_int, default=PRUNE_STAGES, metavar="K",
+                   help="with --finetune: drop them in K equal shares over the first half of the steps, "
+                        "ranked again each time (default %(default)s; 1: all before the first step)")
     c.add_argument("--finetune-quantised", type=positive_int, default=None, metavar="M",
                    help="with --finetune: then fine-tune M more steps through fake quantisation one step "
                         "below the bits the preset chose and search again; the smaller file within the "
@@ -273,6 +278,8 @@ def _compress(args, parser) -> int:
         overrides["level"] = args.level
     if args.finetune_quantised is not None and args.finetune is None:
         return error(PROG, "--finetune-quantised needs --finetune (and --data)")
+    if args.prune_stages != PRUNE_STAGES and args.finetune is None:
+        return error(PROG, "--prune-stages needs --finetune (and --data)")
     if args.finetune is not None and not args.data:
         return error(PROG, "--finetune needs --data (the frames to fine-tune against)")
     if args.finetune is not None and (encodings or len(overrides) > 1):
@@ -285,7 +292,8 @@ def _compress(args, parser) -> int:
         from ..convert.finetune import finetune_file
 
         report, info = finetune_file(args.input, args.output, dataset, args.finetune, args.preset,
-                                     args.prune_fraction, quantised_steps=args.finetune_quantised or 0)
+                                     args.prune_fraction, quantised_steps=args.finetune_quantised or 0,
+                                     stages=args.prune_stages)
         print(report.format())
         print(info.format())
         print(f"wrote {args.output}")

@@ -1,20 +1,23 @@
 """Compression with fine-tuning against the training frames (issue 50, item 4; torch).
 
     params_of(segment, kind) -> STGParams                        a file segment as trainable raw tensors
-    finetune(model, dataset, steps) -> Model                     N photometric steps on the training cameras
+    finetune(model, dataset, steps, prune=0, stages=1) -> Model  N photometric steps on the training cameras
+    prune_schedule(count, steps, prune, stages) -> {step: kept}  when fine-tuning prunes, and to how many
     finetune_quantised(model, dataset, steps, bits) -> Model     the same through fake quantisation (qat.py)
-    compress_finetuned(model, dataset, steps, preset, prune, quantised_steps=0) -> (Model, Settings, FinetuneInfo)
-    finetune_file(in_path, out_path, dataset, steps, preset, prune, quantised_steps=0) -> (Report, FinetuneInfo)
+    compress_finetuned(model, dataset, steps, preset, prune, ...) -> (Model, Settings, FinetuneInfo)
+    finetune_file(in_path, out_path, dataset, steps, preset, prune, ...) -> (Report, FinetuneInfo)
 
-The recipe measured in docs/convert.md ("Fine-tuning"): drop the `prune` least important Gaussians
-(compress.importance: peak opacity x footprint x time drawn), fine-tune the rest for `steps` steps
-against the training cameras' frames (the trainer's loss, L1 + D-SSIM, Adam at the trainer's rates
-times LR_SCALE, no densification), then compress the result with the preset, whose error budget is
-what is left of the preset's PSNR loss after what pruning and fine-tuning cost on the held-out views
-(measured against the original model's PSNR there). Fine-tuning recovers most of what pruning lost,
-so the file has fewer Gaussians at the same quantisation. With quantised_steps, the compressed model
-is then fine-tuned through straight-through fake quantisation one option below the bits chosen
-(QAT_LOWER) and searched again without pruning; the smaller file within the loss is kept.
+The recipe measured in docs/convert.md ("Fine-tuning"): fine-tune for `steps` steps against the
+training cameras' frames (the trainer's loss, L1 + D-SSIM, Adam at the trainer's rates times
+LR_SCALE, no densification) while dropping the `prune` least important Gaussians
+(compress.importance: peak opacity x footprint x time drawn, of the values at the time) in
+PRUNE_STAGES equal shares over the first half of the steps, then compress the result with the
+preset, whose error budget is what is left of the preset's PSNR loss after what pruning and
+fine-tuning cost on the held-out views (measured against the original model's PSNR there).
+Fine-tuning recovers most of what pruning lost, so the file has fewer Gaussians at the same
+quantisation. With quantised_steps, the compressed model is then fine-tuned through straight-through
+fake quantisation one option below the bits chosen (QAT_LOWER) and searched again without pruning;
+the smaller file within the loss is kept.
 
 Only one-segment models (what `stg-train` writes for one segment); the decoder is fine-tuned too.
 """
@@ -35,8 +38,9 @@ from ..params import DecoderMLP, LearningRates, STGParams, extent_of
 from ..raw import to_file_arrays
 from ..render import rasterize, resolve_backend
 from ..trainer import frame_time
+from ..strategy.ops import keep_gaussians
 from .compress import (PRESETS, Report, Settings, _with_segments, compress, dataset_views, file_attribute_bytes,
-                       mse, prune_least_important, render_views, report)
+                       importance, mse, prune_least_important, render_views, report)
 from ..metrics import psnr_of_mse
 from .qat import gaussians_of_file, lowered, quantised_tensors, snapped_segment
 
@@ -44,6 +48,14 @@ from .qat import gaussians_of_file, lowered, quantised_tensors, snapped_segment
 LR_SCALE = 0.5
 #: Quantisation-aware steps' rates: the trainer's times this (0.5 and 0.2 lost 0.1-0.4 dB more, docs).
 QAT_LR_SCALE = 0.05
+#: Pruning while fine-tuning: in this many stages (1: all before the first step), spread over this
+#: share of the steps (docs/convert.md, "Fine-tuning").
+PRUNE_STAGES = 5
+PRUNE_SPAN = 0.5
+#: The held-out camera's frames (spread over the video; all of a 30-frame clip) on which pruning,
+#: fine-tuning and the preset's search are measured (compress's own default, 5, misjudges the loss
+#: of fine-tuned models: docs/convert.md, "Fine-tuning").
+VIEW_FRAMES = 30
 #: Quantisation-aware fine-tuning renders at the first search's bits this many options lower.
 QAT_LOWER = 1
 
@@ -51,7 +63,8 @@ QAT_LOWER = 1
 @dataclass
 class FinetuneInfo:
     """What fine-tuning did: Gaussians before / after pruning, steps, seconds, and the held-out PSNR
-    (dB, mean over the dataset_views) of the original, the pruned and the fine-tuned model."""
+    (dB, mean over the dataset_views) of the original, of it pruned at once (before any step) and
+    of the fine-tuned model."""
 
     gaussians: int
     kept: int
@@ -122,13 +135,31 @@ def _check(model: Model, dataset) -> None:
         raise ValueError("fine-tuning needs the trainer's decoder (12 -> 6 -> 3, sigmoid)")
 
 
-def finetune(model: Model, dataset, steps: int, seed: int = 0, lr_scale: float = LR_SCALE) -> Model:
+def prune_schedule(count: int, steps: int, prune: float, stages: int) -> dict[int, int]:
+    """{step: Gaussians kept from that step on}: `stages` prunings evenly spread over the first
+    PRUNE_SPAN of `steps`, each keeping the same share of what is left, the last keeping
+    count - int(prune * count) of the `count`; {} when nothing is pruned."""
+    final = count - int(prune * count)
+    if final >= count:
+        return {}
+    stages = max(1, min(int(stages), int(steps * PRUNE_SPAN)))
+    schedule = {}
+    for i in range(stages):
+        kept = count * (final / count) ** ((i + 1) / stages)
+        schedule[int(i * steps * PRUNE_SPAN / stages)] = final if i + 1 == stages else max(final, int(round(kept)))
+    return schedule
+
+
+def finetune(model: Model, dataset, steps: int, seed: int = 0, lr_scale: float = LR_SCALE,
+             prune: float = 0.0, stages: int = 1) -> Model:
     """`model` (one segment, frames 0..dataset.num_frames-1) after `steps` Adam steps of the trainer's
-    loss on one random training camera and frame each; the Gaussians are neither added nor removed."""
+    loss on one random training camera and frame each; no Gaussian is added. With `prune`, the
+    least important (compress.importance of the current values) are removed in `stages` prunings
+    (prune_schedule), the fraction `prune` (0-1) of them in all."""
     _check(model, dataset)
     seg = model.segments[0]
     params = params_of(seg, model.kind)
-    _tune(params, dataset, steps, seed, lr_scale)
+    _tune(params, dataset, steps, seed, lr_scale, prunes=prune_schedule(seg.count, steps, prune, stages), like=seg)
     with torch.no_grad():
         return _with_segments(model, [_segment_of(params, seg)])
 
@@ -149,9 +180,11 @@ def finetune_quantised(model: Model, dataset, steps: int, bits: dict, seed: int 
 
 
 def _tune(params: STGParams, dataset, steps: int, seed: int, lr_scale: float, bits: dict | None = None,
-          like: Segment | None = None) -> None:
+          like: Segment | None = None, prunes: dict[int, int] | None = None) -> None:
     """`steps` Adam steps on `params` (in place): the trainer's loss on one random training camera and
-    frame each, rendered through fake quantisation at `bits` (segment layout `like`) when given."""
+    frame each, rendered through fake quantisation at `bits` (segment layout `like`) when given; at
+    each step of `prunes` only that many Gaussians, the most important, are kept (with their Adam
+    state)."""
     lr = LearningRates().scaled(lr_scale)
     extent = extent_of([dataset.cameras[i] for i in dataset.train_cameras])
     groups = params.param_groups(replace(lr, xyz_init=lr.xyz_final), extent)
@@ -159,7 +192,9 @@ def _tune(params: STGParams, dataset, steps: int, seed: int, lr_scale: float, bi
     rng = np.random.default_rng(seed)
     train = dataset.train_cameras
     backend = resolve_backend("auto", "cpu")
-    for _ in range(int(steps)):
+    for step in range(int(steps)):
+        if prunes and step in prunes:
+            _keep_most_important(params, optimizer, prunes.pop(step), like)
         ci, frame = int(train[rng.integers(len(train))]), int(rng.integers(dataset.num_frames))
         cam = dataset.cameras[ci]
         tau = frame_time(dataset, frame)
@@ -174,6 +209,20 @@ def _tune(params: STGParams, dataset, steps: int, seed: int, lr_scale: float, bi
         loss.backward()
         optimizer.step()
         optimizer.zero_grad(set_to_none=True)
+    for kept in (prunes or {}).values():  # no steps: prune all the same
+        _keep_most_important(params, optimizer, kept, like)
+
+
+def _keep_most_important(params: STGParams, optimizer, kept: int, like: Segment) -> None:
+    """Keep the `kept` most important Gaussians of `params` (compress.importance), values, order and
+    Adam moments (strategy.ops.keep_gaussians)."""
+    with torch.no_grad():
+        score = importance(_segment_of(params, like))
+    if kept >= len(score):
+        return
+    keep = np.zeros(len(score), bool)
+    keep[np.argsort(score, kind="stable")[len(score) - kept:]] = True
+    keep_gaussians(params, optimizer, torch.from_numpy(keep))
 
 
 def _psnr(model: Model, views) -> float:
@@ -181,12 +230,13 @@ def _psnr(model: Model, views) -> float:
 
 
 def compress_finetuned(model: Model, dataset, steps: int, preset: str = "web", prune: float = 0.3,
-                       seed: int = 0, quantised_steps: int = 0) -> tuple[Model, Settings, FinetuneInfo]:
-    """Prune the `prune` fraction (0-1) of least important Gaussians, fine-tune `steps` steps, and
-    compress with `preset` within what is left of its PSNR loss (see the module doc). With
-    `quantised_steps`, then fine-tune that many steps through fake quantisation at QAT_LOWER options
-    below the bits chosen and search again (_requantised). Returns the compressed model, its
-    Settings and a FinetuneInfo."""
+                       seed: int = 0, quantised_steps: int = 0,
+                       stages: int = PRUNE_STAGES) -> tuple[Model, Settings, FinetuneInfo]:
+    """Fine-tune `steps` steps while pruning the `prune` fraction (0-1) of least important Gaussians
+    in `stages` (prune_schedule), and compress with `preset` within what is left of its PSNR loss
+    (see the module doc). With `quantised_steps`, then fine-tune that many steps through fake
+    quantisation at QAT_LOWER options below the bits chosen and search again (_requantised).
+    Returns the compressed model, its Settings and a FinetuneInfo."""
     import time
 
     if preset not in PRESETS or preset == "lossless":
@@ -194,10 +244,10 @@ def compress_finetuned(model: Model, dataset, steps: int, preset: str = "web", p
     if not 0.0 <= prune < 1.0:
         raise ValueError(f"prune must be in [0, 1), got {prune}")
     _check(model, dataset)
-    views = dataset_views(dataset, model)
+    views = dataset_views(dataset, model, VIEW_FRAMES)
     pruned = _with_segments(model, [prune_least_important(model.segments[0], prune)])
     start = time.perf_counter()
-    tuned = finetune(pruned, dataset, steps, seed)
+    tuned = finetune(model, dataset, steps, seed, prune=prune, stages=stages)
     info = FinetuneInfo(model.segments[0].count, tuned.segments[0].count, int(steps), time.perf_counter() - start,
                         _psnr(model, views), _psnr(pruned, views), _psnr(tuned, views))
     spent = max(0.0, info.psnr_original - info.psnr_finetuned)
@@ -243,19 +293,20 @@ def _requantised(out: Model, settings: Settings, dataset, views, steps: int, pre
 
 
 def finetune_file(in_path, out_path, dataset, steps: int, preset: str = "web", prune: float = 0.3,
-                  seed: int = 0, quantised_steps: int = 0) -> tuple[Report, FinetuneInfo]:
+                  seed: int = 0, quantised_steps: int = 0,
+                  stages: int = PRUNE_STAGES) -> tuple[Report, FinetuneInfo]:
     """Read `in_path`, compress_finetuned it against `dataset`, write `out_path` atomically; the report
     compares with the input file. ValueError (the file named) for a model fine-tuning cannot take."""
     model = stg_format.load(in_path)
     try:
         compressed, settings, info = compress_finetuned(model, dataset, steps, preset, prune, seed,
-                                                              quantised_steps)
+                                                        quantised_steps, stages)
     except ValueError as e:
         raise ValueError(f"{os.fsdecode(in_path)}: {e}") from None
     compressed.provenance["compress"]["finetune"] = {"steps": int(steps), "prune": float(prune), "seed": int(seed),
-                                                       "quantised_steps": int(quantised_steps)}
-    rep = report(model, compressed, settings, dataset_views(dataset, model), file_attribute_bytes(in_path),
-                 os.path.getsize(in_path))
+                                                       "quantised_steps": int(quantised_steps), "stages": int(stages)}
+    rep = report(model, compressed, settings, dataset_views(dataset, model, VIEW_FRAMES),
+                 file_attribute_bytes(in_path), os.path.getsize(in_path))
     stg_format.save(compressed, out_path, **settings.save_kwargs())
     rep.file_after = os.path.getsize(out_path)
     return rep, info

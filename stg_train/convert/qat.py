@@ -13,8 +13,9 @@ attributes (as stg_train.raw.to_file_arrays with time scale 1, in float32), each
 through the writer's quantisation at the chosen bits (compress.compact_snapped, the very function the
 web preset's search and writer use: B bits are 2^B levels per channel, offset = min and scale =
 (max - min) / (2^B - 1) of the current values), and the Gaussians are evaluated from those values
-(`written`: the snapped values once more through their encoding, as the writer stores them). The forward value is exactly the decoded value (float32); the gradient
-passes straight through the rounding (d quantised / d value = 1).
+(`written`: the snapped values once more through their encoding, as the writer stores them). The
+forward value is exactly the decoded value (float32); the gradient passes straight through the
+rounding (d quantised / d value = 1).
 """
 from __future__ import annotations
 

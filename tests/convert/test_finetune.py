@@ -6,7 +6,7 @@ from stg_runtime import Model, Player, Segment
 from stg_runtime import format as stg_format
 from stg_train.cli.convert import main
 from stg_train.convert.compress import Views, mse, prune_least_important, render_views
-from stg_train.convert.finetune import _segment_of, finetune, finetune_file, params_of
+from stg_train.convert.finetune import _segment_of, finetune, finetune_file, params_of, prune_schedule
 from stg_train.data import load_dataset
 from stg_train.metrics import psnr_of_mse
 
@@ -53,6 +53,40 @@ def test_finetuning_recovers_what_pruning_lost(scene):
     tuned = finetune(pruned, ds, 30)
     assert tuned.segments[0].count == pruned.segments[0].count
     assert train_psnr(tuned, ds) > train_psnr(pruned, ds) + 0.1
+
+
+def test_the_command_line_names_the_libraries_defaults():
+    from stg_train.cli import convert as cli
+    from stg_train.convert import finetune as library
+    from stg_train.convert.compress import PRESETS
+
+    assert cli.PRESET_NAMES == tuple(PRESETS) and cli.PRUNE_STAGES == library.PRUNE_STAGES
+
+
+def test_prune_schedule_spreads_equal_shares_over_the_first_half():
+    assert prune_schedule(1000, 100, 0.0, 5) == {}
+    assert prune_schedule(1000, 100, 0.6, 1) == {0: 400}
+    schedule = prune_schedule(1000, 100, 0.6, 4)
+    assert list(schedule) == [0, 12, 25, 37] and schedule[37] == 400
+    kept = [1000] + list(schedule.values())
+    shares = [b / a for a, b in zip(kept, kept[1:])]
+    assert max(shares) - min(shares) < 0.01 and all(a > b for a, b in zip(kept, kept[1:]))
+    assert prune_schedule(1000, 4, 0.6, 5) == {0: 632, 1: 400}  # no more stages than steps in the span
+    assert prune_schedule(1000, 0, 0.5, 3) == {0: 500}
+
+
+def test_gradual_pruning_keeps_the_most_important_of_the_current_values(scene):
+    """Pruned in stages while fine-tuning: the count the schedule says, what is left renders, and at
+    no steps at all the stages prune what one pruning of the same fraction would."""
+    _, ds, path = scene
+    model = stg_format.load(path)
+    seg = model.segments[0]
+    tuned = finetune(model, ds, 20, prune=0.5, stages=3)
+    assert tuned.segments[0].count == seg.count - int(0.5 * seg.count)
+    assert np.isfinite(train_psnr(tuned, ds))
+    at_once = finetune(model, ds, 0, prune=0.5, stages=3)
+    np.testing.assert_allclose(at_once.segments[0].position, prune_least_important(seg, 0.5).position,
+                               rtol=1e-5, atol=1e-6)
 
 
 def test_finetuned_web_file_reads_back_in_the_runtime(scene, tmp_path):
