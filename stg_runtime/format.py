@@ -68,10 +68,13 @@ DEFAULT_LIMITS = Limits()
 
 
 def ac_bits(encoding: str) -> int | None:
-    """B of a (1.5) arithmetic-coded encoding "acB" or "acB-delta" (B in 1..16), None for any other."""
+    """B of a (1.5) arithmetic-coded encoding "acB" or "acB-delta" (B in 1..16, ASCII digits, no
+    leading zero), None for any other."""
     name = encoding[:-len("-delta")] if encoding.endswith("-delta") else encoding
     digits = name[2:]
-    if name[:2] != "ac" or not digits.isdigit() or digits[0] == "0" or not 1 <= int(digits) <= range_coder.MAX_BITS:
+    if name[:2] != "ac" or not (digits.isascii() and digits.isdigit()) or digits[0] == "0":
+        return None
+    if not 1 <= int(digits) <= range_coder.MAX_BITS:
         return None
     return int(digits)
 

@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Fuzz the readers with mutated files and print what happened to them.
 
-    python tools/fuzz.py [--stg N] [--ply N] [--seed S] [--timeout SECONDS]
+    python tools/fuzz.py [--stg N] [--ply N] [--seed S] [--timeout SECONDS] [--vectors A,B]
 
 .stg files: the test vectors (formats/vectors/) mutated in their JSON header (a value replaced by one
 of a pool of hostile values, or a key deleted), in their data section, in their decoder's bytes or
@@ -107,8 +107,12 @@ def _camera(model) -> Camera:
     return Camera.look_at([0, 0, 0], [0, 0, 4], [0, -1, 0], 50.0, 32, 24)
 
 
-def fuzz_stg(count: int, rng, timeout: float, outcomes: collections.Counter, unexpected: list) -> None:
-    bases = [p.read_bytes() for p in sorted((ROOT / "formats" / "vectors").glob("*.stg"))]
+def fuzz_stg(count: int, rng, timeout: float, outcomes: collections.Counter, unexpected: list,
+             vectors: list[str] | None = None) -> None:
+    paths = sorted((ROOT / "formats" / "vectors").glob("*.stg"))
+    bases = [p.read_bytes() for p in paths if not vectors or p.stem in vectors]
+    if not bases:
+        raise SystemExit(f"fuzz.py: no test vector named {', '.join(vectors)} in formats/vectors/")
     for k in range(count):
         how, data = mutate_stg(bases[k % len(bases)], rng)
         stage = "load"
@@ -204,13 +208,15 @@ def main(argv=None) -> int:
     ap.add_argument("--ply", type=int, default=20000, help="mutated PLYs (default %(default)s)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--timeout", type=float, default=20.0, help="seconds a render may take (default %(default)s)")
+    ap.add_argument("--vectors", type=lambda v: [n for n in v.split(",") if n], default=None, metavar="A,B",
+                    help="mutate only these test vectors (names without .stg; default all)")
     args = ap.parse_args(argv)
     signal.signal(signal.SIGALRM, _alarm)
     rng = np.random.default_rng(args.seed)
     outcomes: collections.Counter = collections.Counter()
     unexpected: list = []
     start = time.perf_counter()
-    fuzz_stg(args.stg, rng, args.timeout, outcomes, unexpected)
+    fuzz_stg(args.stg, rng, args.timeout, outcomes, unexpected, args.vectors)
     fuzz_ply(args.ply, rng, outcomes, unexpected)
     print(f"{args.stg} .stg files and {args.ply} PLYs in {time.perf_counter() - start:.0f} s (seed {args.seed})")
     for what, n in sorted(outcomes.items(), key=lambda kv: (-kv[1], kv[0])):
