@@ -322,7 +322,9 @@ def save(model: Model, path, encodings: dict[str, str] | None = None, codec: str
     (u8 / u16 stored as differences, for sorted values); "vq/ENC": a codebook of the attribute's
     distinct rows (at most 65536; stored in ENC, one of those six, "vq" = "vq/f32")
     and an index per Gaussian; or parts "ENC:CHANNELS+ENC:CHANNELS...", consecutive channels each in
-    one of the encodings above (e.g. "u16:3+vq/u8:9" for position coefficient 0 and the motion).
+    one of the encodings above (e.g. "u16:3+vq/u8:9" for position coefficient 0 and the motion);
+    (1.5) "acB", "acB-delta" (B = 1..16): B-bit fixed point, arithmetic-coded (stored raw), also as
+    a part or a codebook.
     codec: "zlib" (level 0-9) or "raw" for the attribute blobs; the decoder is always stored raw. provenance overrides
     model.provenance. Raises ValueError (naming the attribute) for values the encoding cannot hold;
     on any error nothing is left at a new path.

@@ -20,10 +20,10 @@ the renders of a few views (the file's cameras at a few frames, or a dataset's h
 stay within the PSNR loss the preset allows (errors against the uncompressed render add to the
 model's own error against the ground truth, measured with a dataset or assumed).
 
-The `web` preset uses format 1.4 (formats/stg-v1.md, "Deltas, codebooks and parts"): each channel
-group is a part in its own container (u8 up to 8 bits, else u16), stored as differences where zlib
-makes that smaller (the Morton-ordered centres), and a group may become one constant (0 bits: its
-mean). It also drops the least important Gaussians (peak opacity x footprint area x time drawn),
+The `web` preset uses format 1.5 (formats/stg-v1.md, "Arithmetic-coded fixed point"): each channel
+group is a part of its own, B bits as "acB" (2^B levels, arithmetic-coded), as differences where
+that takes fewer bytes (the Morton-ordered centres), and a group may become one constant (0 bits:
+its mean). It also drops the least important Gaussians (peak opacity x footprint area x time drawn),
 the largest of PRUNE_FRACTIONS that costs at most PRUNE_SHARE of the budget, and once the predicted
 allocation fits it lowers groups one measured step at a time while the whole stays within budget.
 """
@@ -51,8 +51,8 @@ class Preset:
     assumed when no dataset gives it (the budget on the error against the uncompressed render follows
     from both); prune_opacity: peak-opacity threshold (None: no pruning); prune_unseen: drop Gaussians
     no camera sees; order: "morton" or None; level: zlib level; encodings: fixed encodings (None:
-    measured within the budget); compact: use format 1.4 (each channel group its own container, stored
-    as differences where deflate makes that smaller, a group may become one constant, and the least
+    measured within the budget); compact: use format 1.5 (each channel group arithmetic-coded in a part
+    of its own, as differences where that is smaller, a group may become one constant, and the least
     important Gaussians are pruned within part of the budget; see prune_least_important)."""
 
     max_loss_db: float
@@ -218,7 +218,7 @@ def reorder(segment: Segment) -> Segment:
 #: group of the attribute needs <= 8 bits, else u16, with values snapped to multiples of
 #: 2^(container bits - bits) so that zlib stores the unused low bits almost for free), then float.
 OPTIONS = (1, 2, 3, 4, 5, 6, 7, 8, 10, 12, 14, 16, "f16", "f32")
-#: Compact presets (format 1.4) also have 0 bits: the group's channels become their mean.
+#: Compact presets (format 1.5) also have 0 bits: the group's channels become their mean.
 COMPACT_OPTIONS = (0,) + OPTIONS
 
 
@@ -476,7 +476,7 @@ def compress(model: Model, preset: str = "balanced", encodings: dict | None = No
     """Prune, reorder and choose the precision of `model`'s attributes (the model is not modified);
     returns (compressed model, Settings). Write it with `format.save(model, path, **settings.save_kwargs())`.
 
-    preset: "lossless", "balanced", "small" or "web" (PRESETS; web writes format 1.4); the other
+    preset: "lossless", "balanced", "small" or "web" (PRESETS; web writes format 1.5); the other
     arguments override it:
     encodings: {attribute: "f32" | "f16" | "u8" | "u16"} fixed for those attributes (the others are
     measured); prune_opacity: peak-opacity threshold or None (no pruning); prune_unseen: drop Gaussians
