@@ -164,29 +164,28 @@ def _zlib_bomb() -> bytes:
 COMPACT = {"features": "vq/f32", "position": "u16-delta:3+vq/f16:9", "opacity": "u8-delta"}
 
 
-def _compact(edit=None, section_edit=None) -> bytes:
-    """(1.4) The base model with vq, parts and delta arrays (raw blobs), `edit(header)` and
-    `section_edit(header, section) -> section` applied."""
-    header, section, _ = split(stg_format.dumps(stg_format.loads(_base()), COMPACT, codec="raw"))
-    if edit:
-        edit(header)
-    if section_edit:
-        section = section_edit(header, section)
-    return seal(header, section, (1, 4))
-
-
 AC = {"features": "ac8:3+ac5-delta:6", "position": "ac12-delta:3+ac6:9", "opacity": "ac7"}
 
 
-def _ac(edit=None, section_edit=None) -> bytes:
-    """(1.5) The base model with arithmetic-coded arrays, `edit(header)` and
-    `section_edit(header, section) -> section` applied."""
-    header, section, _ = split(stg_format.dumps(stg_format.loads(_base()), AC, codec="raw"))
+def _encoded(encodings: dict, version: tuple, edit=None, section_edit=None) -> bytes:
+    """The base model written with `encodings` (raw blobs), `edit(header)` and
+    `section_edit(header, section) -> section` applied, sealed as `version`."""
+    header, section, _ = split(stg_format.dumps(stg_format.loads(_base()), encodings, codec="raw"))
     if edit:
         edit(header)
     if section_edit:
         section = section_edit(header, section)
-    return seal(header, section, (1, 5))
+    return seal(header, section, version)
+
+
+def _compact(edit=None, section_edit=None) -> bytes:
+    """(1.4) The base model with vq, parts and delta arrays."""
+    return _encoded(COMPACT, (1, 4), edit, section_edit)
+
+
+def _ac(edit=None, section_edit=None) -> bytes:
+    """(1.5) The base model with arithmetic-coded arrays."""
+    return _encoded(AC, (1, 5), edit, section_edit)
 
 
 def _opacity(header):
