@@ -5,6 +5,7 @@ Python reader loads it); fuzzed files the Python reader refuses are refused. The
 page (tests/web/test_page.py shows the messages there)."""
 from __future__ import annotations
 
+import importlib
 import json
 import re
 import shutil
@@ -26,6 +27,27 @@ ROOT = Path(__file__).resolve().parents[2]
 HERE = Path(__file__).resolve().parent
 VECTORS = sorted((ROOT / "formats" / "vectors").glob("*.stg"))
 MALICIOUS = ROOT / "tests" / "runtime" / "malicious"
+
+
+def _from_tools(module: str, *names: str):
+    """`names` of tools/`module`.py (one name: the object itself, else a tuple)."""
+    sys.path.insert(0, str(ROOT / "tools"))
+    try:
+        found = importlib.import_module(module)
+    finally:
+        sys.path.remove(str(ROOT / "tools"))
+    values = tuple(getattr(found, name) for name in names)
+    return values[0] if len(values) == 1 else values
+
+
+def python_error(path: Path, named: str | None = None) -> str | None:
+    """The Python reader's FormatError message for `path`, None if it loads. The message starts with
+    the path, or with `named` in its place (the node scripts name files by their names)."""
+    try:
+        stg_format.load(path)
+    except FormatError as e:
+        return str(e) if named is None else f"{named}: {str(e).split(': ', 1)[1]}"
+    return None
 
 
 def read_with_js(path: Path, out: Path) -> dict:
@@ -151,11 +173,7 @@ def test_ac_errors_read_as_in_python(tmp_path):
     byte, a stream cut short or followed by more bytes, garbage, B out of range or spelled otherwise,
     missing or short offset / scale."""
     from stg_runtime import Model, Segment
-    sys.path.insert(0, str(ROOT / "tools"))
-    try:
-        from craft import seal, split
-    finally:
-        sys.path.remove(str(ROOT / "tools"))
+    seal, split = _from_tools("craft", "seal", "split")
     rng = np.random.default_rng(2)
     n = 50
     segment = Segment(0, 4, opacity=rng.uniform(0, 1, n), t_center=rng.uniform(0, 1, n), t_scale=np.ones(n),
@@ -210,12 +228,8 @@ def test_ac_errors_read_as_in_python(tmp_path):
     refused = 0
     for name in cases:
         file = f"{name}.stg"
-        try:
-            stg_format.load(tmp_path / file)
-            python = None
-        except FormatError as e:
-            python = f"{file}: {str(e).split(': ', 1)[1]}"  # (Python names the path, the script the file)
-            refused += 1
+        python = python_error(tmp_path / file, named=file)
+        refused += python is not None
         got = results[file]
         assert got["ok"] == (python is None) and (python is None or got["error"] == python), (got, python)
         if python is None:  # (read as ac9-delta: other values, the same in both)
@@ -297,11 +311,7 @@ def test_damaged_files_are_refused(tmp_path):
 
 
 def test_fuzzed_files_refused_by_python_are_refused(tmp_path):
-    sys.path.insert(0, str(ROOT / "tools"))
-    try:
-        from fuzz import mutate_stg
-    finally:
-        sys.path.remove(str(ROOT / "tools"))
+    mutate_stg = _from_tools("fuzz", "mutate_stg")
     rng = np.random.default_rng(11)
     bases = [p.read_bytes() for p in VECTORS]
     assert bytes([1, 0, 5, 0]) in [b[8:12] for b in bases]  # a 1.5 file (full_ac.stg: acB arrays) among the seeds
@@ -310,11 +320,7 @@ def test_fuzzed_files_refused_by_python_are_refused(tmp_path):
         how, data = mutate_stg(bases[k % len(bases)], rng)
         path = tmp_path / f"f{k:03d}.stg"
         path.write_bytes(data)
-        try:
-            stg_format.load(path)
-            expected[path.name] = None
-        except FormatError as e:
-            expected[path.name] = str(e)
+        expected[path.name] = python_error(path)
     results = read_many(sorted(tmp_path.glob("*.stg")))
     refused = [n for n, e in expected.items() if e is not None]
     assert len(refused) > 100
@@ -333,11 +339,7 @@ def test_fuzzed_ac_streams_read_as_in_python(tmp_path):
     """(1.5) full_ac.stg with its acB blobs damaged (1 to 4 bytes replaced, or the blob made 1 to 3 bytes
     shorter or longer): the JS reader accepts what Python accepts, with the same values, and refuses
     the rest with Python's message, word for word."""
-    sys.path.insert(0, str(ROOT / "tools"))
-    try:
-        from craft import seal, split
-    finally:
-        sys.path.remove(str(ROOT / "tools"))
+    seal, split = _from_tools("craft", "seal", "split")
     header, section, version = split((ROOT / "formats" / "vectors" / "full_ac.stg").read_bytes())
     blobs = []
 
@@ -364,11 +366,7 @@ def test_fuzzed_ac_streams_read_as_in_python(tmp_path):
         blob.update(original)
         path = tmp_path / f"a{k:03d}.stg"
         path.write_bytes(data)
-        try:
-            stg_format.load(path)
-            expected[path.name] = None
-        except FormatError as e:
-            expected[path.name] = f"{path.name}: {str(e).split(': ', 1)[1]}"
+        expected[path.name] = python_error(path, named=path.name)
     results = read_many(sorted(tmp_path.glob("*.stg")))
     for name, error in expected.items():
         assert results[name]["ok"] == (error is None) and results[name].get("error") == error, (error, results[name])
