@@ -305,12 +305,7 @@ def compact_encoding(values: np.ndarray, choice: list, groups: list[slice], leve
     for group, option in zip(groups, choice):
         enc = compact_container(option)
         if enc != "f32" and enc != "f16":
-            def size(e: str) -> int:
-                sizes = []
-                stg_format.encode_array(x[:, group], e, lambda b, codec="zlib": sizes.append(
-                    len(b) if codec == "raw" else len(zlib.compress(b, level))))
-                return sum(sizes)
-            sizes = {e: size(e) for e in (enc, enc + "-delta")}
+            sizes = {e: encoded_bytes(x[:, group], e, level) for e in (enc, enc + "-delta")}
             enc = min(sizes, key=lambda e: (sizes[e], e))
         parts.append((enc, group.stop - group.start))
     if len(parts) == 1:
@@ -347,13 +342,19 @@ def attribute_bytes(model: Model, encodings: dict | None = None, level: int = 6)
     out = {name: 0 for name in ATTRIBUTES}
     for seg in model.segments:
         for name, values in seg.arrays().items():
-            sizes = []
-
-            def blob(payload: bytes, codec: str = "zlib") -> None:  # arithmetic-coded data is stored raw
-                sizes.append(len(payload) if codec == "raw" else len(zlib.compress(payload, level)))
-            stg_format.encode_array(values, encodings.get(name, "f32"), blob)
-            out[name] += sum(sizes)
+            out[name] += encoded_bytes(values, encodings.get(name, "f32"), level)
     return out
+
+
+def encoded_bytes(values: np.ndarray, encoding: str, level: int) -> int:
+    """Bytes of the blobs format.encode_array writes for `values` with `encoding`: zlib at `level`,
+    except blobs stored raw (arithmetic-coded data)."""
+    sizes = []
+
+    def blob(payload: bytes, codec: str = "zlib") -> None:
+        sizes.append(len(payload) if codec == "raw" else len(zlib.compress(payload, level)))
+    stg_format.encode_array(values, encoding, blob)
+    return sum(sizes)
 
 
 def file_attribute_bytes(path) -> dict[str, int]:
