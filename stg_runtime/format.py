@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import onnx_mlp, range_coder
+from . import onnx_mlp
 from .atomic import write_atomic
 from .camera import Camera
 from .model import ACTIVATIONS, ATTRIBUTES, FEATURE_CHANNELS, KINDS, Model, Segment, allowed_channels, attribute_shape
@@ -33,6 +33,7 @@ PLAIN = (*ENCODINGS, *DELTA)  # encodings of one number per value (and (1.5) the
 CODECS = ("raw", "zlib")
 MAX_CODEBOOK = 1 << 16  # rows of a "vq" codebook (1.4)
 MAX_PARTS = 64  # parts of a "parts" array (1.4)
+MAX_AC_BITS = 16  # (1.5) the largest B of "acB" (range_coder.MAX_BITS; the coder, numba, is imported when used)
 
 
 class FormatError(ValueError):
@@ -74,7 +75,7 @@ def ac_bits(encoding: str) -> int | None:
     digits = name[2:]
     if name[:2] != "ac" or not (digits.isascii() and digits.isdigit()) or digits[0] == "0":
         return None
-    if not 1 <= int(digits) <= range_coder.MAX_BITS:
+    if not 1 <= int(digits) <= MAX_AC_BITS:
         return None
     return int(digits)
 
@@ -229,6 +230,8 @@ def encode_array(values: np.ndarray, encoding: str, blob) -> dict:
                 "data": blob(index.reshape(-1).astype(dtype).tobytes())}
     bits = ac_bits(encoding)
     if bits is not None:  # (1.5) B-bit integers, channel-major (differences), arithmetic-coded
+        from . import range_coder
+
         stored, params = quantize(values, encoding.removesuffix("-delta"))
         symbols = np.ascontiguousarray(_channels(stored).T).astype(np.int64)
         if encoding.endswith("-delta"):
@@ -573,6 +576,8 @@ def _values(spec: dict, shape: tuple, section: memoryview, where: str) -> np.nda
     encoding, channels = spec["encoding"], math.prod(shape[1:])
     bits = ac_bits(encoding)
     if bits is not None:  # (1.5) arithmetic-coded B-bit integers, channel-major
+        from . import range_coder
+
         data = _blob(_get(spec, "data", dict, where), section, None, where)
         try:
             symbols = range_coder.decode(data, channels, shape[0], bits)

@@ -72,6 +72,10 @@ def test_streams_that_are_not_whole_are_refused():
         range_coder.encode(symbols, 5)
 
 
+def test_the_format_allows_the_widths_the_coder_codes():
+    assert stg_format.MAX_AC_BITS == range_coder.MAX_BITS
+
+
 def test_ac_arrays_round_trip_within_the_fixed_point_bound():
     """Every B, plain and as differences, in parts beside 1.0 encodings and as a codebook: decoded
     values within the u8 / u16 bound at 2^B - 1 levels; the file says 1.5 (1.4 without acB)."""
