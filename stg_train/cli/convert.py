@@ -152,7 +152,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --data: prune, then fine-tune N steps against the training frames before "
                         "quantizing (docs/convert.md, 'Fine-tuning'; needs torch)")
     c.add_argument("--prune-fraction", type=_unit_fraction, default=0.3, metavar="F",
-                   help="with --finetune: the fraction of least important Gaussians dropped (default 0.3)")
+                   help="with --finetune: the fraction of Gaussians dropped, those that contribute least to "
+                        "the training views (default 0.3)")
     c.add_argument("--prune-stages", type=positive_int, default=PRUNE_STAGES, metavar="K",
                    help="with --finetune: drop them in K equal shares over the first half of the steps, "
                         "ranked again each time (default %(default)s; 1: all before the first step)")

@@ -3,15 +3,16 @@
     params_of(segment, kind) -> STGParams                        a file segment as trainable raw tensors
     finetune(model, dataset, steps, prune=0, stages=1) -> Model  N photometric steps on the training cameras
     prune_schedule(count, steps, prune, stages) -> {step: kept}  when fine-tuning prunes, and to how many
+    contribution(params, dataset, views) -> (N,)                 blending weight summed over training views
     finetune_quantised(model, dataset, steps, bits) -> Model     the same through fake quantisation (qat.py)
     compress_finetuned(model, dataset, steps, preset, prune, ...) -> (Model, Settings, FinetuneInfo)
     finetune_file(in_path, out_path, dataset, steps, preset, prune, ...) -> (Report, FinetuneInfo)
 
 The recipe measured in docs/convert.md ("Fine-tuning"): fine-tune for `steps` steps against the
 training cameras' frames (the trainer's loss, L1 + D-SSIM, Adam at the trainer's rates times
-LR_SCALE, no densification) while dropping the `prune` least important Gaussians
-(compress.importance: peak opacity x footprint x time drawn, of the values at the time) in
-PRUNE_STAGES equal shares over the first half of the steps, then compress the result with the
+LR_SCALE, no densification) while dropping the `prune` Gaussians that contribute least to the
+training views (contribution: blending weight summed over random views, of the values at the
+time) in PRUNE_STAGES equal shares over the first half of the steps, then compress the result with the
 preset, whose error budget is what is left of the preset's PSNR loss after what pruning and
 fine-tuning cost on the held-out views (measured against the original model's PSNR there).
 Fine-tuning recovers most of what pruning lost, so the file has fewer Gaussians at the same
@@ -40,7 +41,7 @@ from ..render import rasterize, resolve_backend
 from ..trainer import frame_time
 from ..strategy.ops import keep_gaussians
 from .compress import (PRESETS, Report, Settings, _with_segments, compress, dataset_views, file_attribute_bytes,
-                       importance, mse, prune_least_important, render_views, report)
+                       mse, render_views, report)
 from ..metrics import psnr_of_mse
 from .qat import gaussians_of_file, lowered, quantised_tensors, snapped_segment
 
@@ -56,6 +57,9 @@ PRUNE_SPAN = 0.5
 #: fine-tuning and the preset's search are measured (compress's own default, 5, misjudges the loss
 #: of fine-tuned models: docs/convert.md, "Fine-tuning").
 VIEW_FRAMES = 30
+#: Pruning while fine-tuning ranks the Gaussians by their blending weight summed over this many random
+#: training views (contribution; 60 and 300 views prune alike, docs/convert.md).
+CONTRIBUTION_VIEWS = 60
 #: Quantisation-aware fine-tuning renders at the first search's bits this many options lower.
 QAT_LOWER = 1
 
@@ -153,8 +157,8 @@ def prune_schedule(count: int, steps: int, prune: float, stages: int) -> dict[in
 def finetune(model: Model, dataset, steps: int, seed: int = 0, lr_scale: float = LR_SCALE,
              prune: float = 0.0, stages: int = 1) -> Model:
     """`model` (one segment, frames 0..dataset.num_frames-1) after `steps` Adam steps of the trainer's
-    loss on one random training camera and frame each; no Gaussian is added. With `prune`, the
-    least important (compress.importance of the current values) are removed in `stages` prunings
+    loss on one random training camera and frame each; no Gaussian is added. With `prune`, those
+    that contribute least (contribution, of the current values) are removed in `stages` prunings
     (prune_schedule), the fraction `prune` (0-1) of them in all."""
     _check(model, dataset)
     seg = model.segments[0]
@@ -183,8 +187,8 @@ def _tune(params: STGParams, dataset, steps: int, seed: int, lr_scale: float, bi
           like: Segment | None = None, prunes: dict[int, int] | None = None) -> None:
     """`steps` Adam steps on `params` (in place): the trainer's loss on one random training camera and
     frame each, rendered through fake quantisation at `bits` (segment layout `like`) when given; at
-    each step of `prunes` only that many Gaussians, the most important, are kept (with their Adam
-    state)."""
+    each step of `prunes` only that many Gaussians, those that contribute most, are kept (with their
+    Adam state)."""
     lr = LearningRates().scaled(lr_scale)
     extent = extent_of([dataset.cameras[i] for i in dataset.train_cameras])
     groups = params.param_groups(replace(lr, xyz_init=lr.xyz_final), extent)
@@ -194,7 +198,7 @@ def _tune(params: STGParams, dataset, steps: int, seed: int, lr_scale: float, bi
     backend = resolve_backend("auto", "cpu")
     for step in range(int(steps)):
         if prunes and step in prunes:
-            _keep_most_important(params, optimizer, prunes.pop(step), like)
+            _keep_most_important(params, optimizer, prunes.pop(step), dataset, backend, seed + step)
         ci, frame = int(train[rng.integers(len(train))]), int(rng.integers(dataset.num_frames))
         cam = dataset.cameras[ci]
         tau = frame_time(dataset, frame)
@@ -210,14 +214,33 @@ def _tune(params: STGParams, dataset, steps: int, seed: int, lr_scale: float, bi
         optimizer.step()
         optimizer.zero_grad(set_to_none=True)
     for kept in (prunes or {}).values():  # no steps: prune all the same
-        _keep_most_important(params, optimizer, kept, like)
+        _keep_most_important(params, optimizer, kept, dataset, backend, seed)
 
 
-def _keep_most_important(params: STGParams, optimizer, kept: int, like: Segment) -> None:
-    """Keep the `kept` most important Gaussians of `params` (compress.importance), values, order and
-    Adam moments (strategy.ops.keep_gaussians)."""
-    with torch.no_grad():
-        score = importance(_segment_of(params, like))
+def contribution(params: STGParams, dataset, views: int = CONTRIBUTION_VIEWS, seed: int = 0,
+                 backend: str = "numba") -> np.ndarray:
+    """(N,) float64: each Gaussian's blending weight (transmittance x alpha), summed over the pixels of
+    `views` random training cameras at random frames, at the current values: its share of what those
+    views show, occlusion included. The sum is the gradient of the splatted image of a constant
+    one-channel feature with respect to that feature."""
+    rng = np.random.default_rng(seed)
+    train = dataset.train_cameras
+    score = np.zeros(params.count)
+    for _ in range(int(views)):
+        ci, frame = int(train[rng.integers(len(train))]), int(rng.integers(dataset.num_frames))
+        with torch.no_grad():
+            g = params.at(frame_time(dataset, frame))
+        probe = torch.ones(params.count, 1, requires_grad=True)
+        out = rasterize(g.means, g.quats, g.scales, g.opacities, probe, dataset.cameras[ci], backend=backend)
+        out.features.sum().backward()
+        score += probe.grad[:, 0].double().numpy()
+    return score
+
+
+def _keep_most_important(params: STGParams, optimizer, kept: int, dataset, backend: str, seed: int) -> None:
+    """Keep the `kept` Gaussians of `params` that contribute most to the training views (contribution),
+    values, order and Adam moments (strategy.ops.keep_gaussians)."""
+    score = contribution(params, dataset, seed=seed, backend=backend)
     if kept >= len(score):
         return
     keep = np.zeros(len(score), bool)
@@ -245,7 +268,7 @@ def compress_finetuned(model: Model, dataset, steps: int, preset: str = "web", p
         raise ValueError(f"prune must be in [0, 1), got {prune}")
     _check(model, dataset)
     views = dataset_views(dataset, model, VIEW_FRAMES)
-    pruned = _with_segments(model, [prune_least_important(model.segments[0], prune)])
+    pruned = finetune(model, dataset, 0, seed, prune=prune)
     start = time.perf_counter()
     tuned = finetune(model, dataset, steps, seed, prune=prune, stages=stages)
     info = FinetuneInfo(model.segments[0].count, tuned.segments[0].count, int(steps), time.perf_counter() - start,

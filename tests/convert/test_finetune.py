@@ -1,12 +1,16 @@
-"""stg_train.convert.finetune: the raw round trip, fine-tuning raises PSNR, files read back, clear errors."""
+"""stg_train.convert.finetune: the raw round trip, fine-tuning raises PSNR, pruning by contribution, files
+read back, clear errors."""
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
-from stg_runtime import Model, Player, Segment
+from stg_runtime import Camera, Model, Player, Segment
 from stg_runtime import format as stg_format
 from stg_train.cli.convert import main
-from stg_train.convert.compress import Views, mse, prune_least_important, render_views
-from stg_train.convert.finetune import _segment_of, finetune, finetune_file, params_of, prune_schedule
+from stg_train.convert.compress import Views, importance, mse, prune_least_important, render_views
+from stg_train.convert.finetune import (_segment_of, contribution, finetune, finetune_file, params_of,
+                                        prune_schedule)
 from stg_train.data import load_dataset
 from stg_train.metrics import psnr_of_mse
 
@@ -75,18 +79,65 @@ def test_prune_schedule_spreads_equal_shares_over_the_first_half():
     assert prune_schedule(1000, 0, 0.5, 3) == {0: 500}
 
 
-def test_gradual_pruning_keeps_the_most_important_of_the_current_values(scene):
-    """Pruned in stages while fine-tuning: the count the schedule says, what is left renders, and at
-    no steps at all the stages prune what one pruning of the same fraction would."""
+def test_gradual_pruning_keeps_those_that_contribute_most(scene):
+    """Pruned in stages while fine-tuning: the count the schedule says and what is left renders; at no
+    steps and one stage, exactly the Gaussians of highest contribution are kept."""
     _, ds, path = scene
     model = stg_format.load(path)
     seg = model.segments[0]
     tuned = finetune(model, ds, 20, prune=0.5, stages=3)
     assert tuned.segments[0].count == seg.count - int(0.5 * seg.count)
     assert np.isfinite(train_psnr(tuned, ds))
-    at_once = finetune(model, ds, 0, prune=0.5, stages=3)
-    np.testing.assert_allclose(at_once.segments[0].position, prune_least_important(seg, 0.5).position,
-                               rtol=1e-5, atol=1e-6)
+    at_once = finetune(model, ds, 0, prune=0.5)
+    keep = np.zeros(seg.count, bool)
+    keep[np.argsort(contribution(params_of(seg, model.kind), ds, seed=0), kind="stable")[seg.count // 2:]] = True
+    np.testing.assert_allclose(at_once.segments[0].position, seg.subset(keep).position, rtol=1e-5, atol=1e-6)
+
+
+def one_view(camera) -> SimpleNamespace:
+    """A stand-in dataset of one training camera at one frame (tau 0): contribution's views are all it."""
+    return SimpleNamespace(train_cameras=[0], cameras=[camera], num_frames=1)
+
+
+def test_contribution_is_the_blending_weight_the_views_show(scene):
+    """Summed over the Gaussians, the contribution of 3 views of one image is 3 times that image's
+    alpha, as the torch splatter (the twin of the numba one contribution uses) renders it."""
+    import torch
+
+    from stg_train.render import rasterize
+
+    _, ds, path = scene
+    model = stg_format.load(path)
+    params = params_of(model.segments[0], model.kind)
+    camera = ds.cameras[ds.train_cameras[0]]
+    score = contribution(params, one_view(camera), views=3)
+    with torch.no_grad():
+        g = params.at(0.0)
+        alpha = rasterize(g.means, g.quats, g.scales, g.opacities, g.features, camera, backend="torch").alpha
+    assert score.shape == (params.count,) and (score >= 0).all()
+    np.testing.assert_allclose(score.sum(), 3 * float(alpha.sum()), rtol=1e-4)
+
+
+def test_contribution_sees_occlusion():
+    """Two equal Gaussians on the camera's axis, 1 and 3 units away: importance ranks them alike;
+    contribution gives the one behind less than a fifth of what it has alone."""
+    cam = Camera.look_at((0, 0, 0), (0, 0, 1), (0, -1, 0), 60, 32, 32)
+
+    def gaussians(depths):
+        n = len(depths)
+        position = np.zeros((n, 4, 3), np.float32)
+        position[:, 0, 2] = depths
+        rotation = np.zeros((n, 2, 4), np.float32)
+        rotation[:, 0, 0] = 1.0
+        return Segment(0, 1, opacity=np.full(n, 0.99, np.float32), t_center=np.zeros(n, np.float32),
+                       t_scale=np.zeros(n, np.float32), position=position, rotation=rotation,
+                       scale=np.full((n, 3), 0.5, np.float32), features=np.full((n, 3), 0.5, np.float32))
+
+    both = gaussians([1.0, 3.0])
+    assert importance(both)[0] == importance(both)[1]
+    front, back = contribution(params_of(both, "lite"), one_view(cam), views=1)
+    (alone,) = contribution(params_of(gaussians([3.0]), "lite"), one_view(cam), views=1)
+    assert back < 0.2 * alone and back < 0.2 * front
 
 
 def test_finetuned_web_file_reads_back_in_the_runtime(scene, tmp_path):
