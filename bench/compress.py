@@ -14,8 +14,9 @@ cameras, model PSNR assumed 33 dB), as `stg-convert compress` with and without -
 --finetune N (repeatable) adds rows of web with fine-tuning (stg_train.convert.finetune: N steps
 against the training frames pruning --prune of the Gaussians, those that contribute least to the
 training views, in --prune-stages stages, then web within what is left); --only-finetune skips the
-presets, --preset P (repeatable) keeps only P's rows. --finetune-quantised M (repeatable) then fine-tunes M more steps through fake quantisation
-below the bits web chose and searches again (stg-convert compress --finetune-quantised M).
+presets, --preset P (repeatable) keeps only P's rows. --finetune-quantised M (repeatable) then
+fine-tunes M more steps through fake quantisation below the bits web chose and searches again
+(stg-convert compress --finetune-quantised M).
 """
 from __future__ import annotations
 
