@@ -194,12 +194,11 @@ def _tune(params: STGParams, dataset, steps: int, seed: int, lr_scale: float, bi
     groups = params.param_groups(replace(lr, xyz_init=lr.xyz_final), extent)
     optimizer = torch.optim.Adam(groups, eps=1e-15)
     rng = np.random.default_rng(seed)
-    train = dataset.train_cameras
     backend = resolve_backend("auto", "cpu")
     for step in range(int(steps)):
         if prunes and step in prunes:
-            _keep_most_important(params, optimizer, prunes.pop(step), dataset, backend, seed + step)
-        ci, frame = int(train[rng.integers(len(train))]), int(rng.integers(dataset.num_frames))
+            _keep_top_contributors(params, optimizer, prunes.pop(step), dataset, backend, seed + step)
+        ci, frame = _random_view(rng, dataset)
         cam = dataset.cameras[ci]
         tau = frame_time(dataset, frame)
         if bits is None:
@@ -214,7 +213,13 @@ def _tune(params: STGParams, dataset, steps: int, seed: int, lr_scale: float, bi
         optimizer.step()
         optimizer.zero_grad(set_to_none=True)
     for kept in (prunes or {}).values():  # no steps: prune all the same
-        _keep_most_important(params, optimizer, kept, dataset, backend, seed)
+        _keep_top_contributors(params, optimizer, kept, dataset, backend, seed)
+
+
+def _random_view(rng: np.random.Generator, dataset) -> tuple[int, int]:
+    """(camera index, frame): a random training camera of `dataset` at a random frame."""
+    train = dataset.train_cameras
+    return int(train[rng.integers(len(train))]), int(rng.integers(dataset.num_frames))
 
 
 def contribution(params: STGParams, dataset, views: int = CONTRIBUTION_VIEWS, seed: int = 0,
@@ -224,10 +229,9 @@ def contribution(params: STGParams, dataset, views: int = CONTRIBUTION_VIEWS, se
     views show, occlusion included. The sum is the gradient of the splatted image of a constant
     one-channel feature with respect to that feature."""
     rng = np.random.default_rng(seed)
-    train = dataset.train_cameras
     score = np.zeros(params.count)
     for _ in range(int(views)):
-        ci, frame = int(train[rng.integers(len(train))]), int(rng.integers(dataset.num_frames))
+        ci, frame = _random_view(rng, dataset)
         with torch.no_grad():
             g = params.at(frame_time(dataset, frame))
         probe = torch.ones(params.count, 1, requires_grad=True)
@@ -237,7 +241,7 @@ def contribution(params: STGParams, dataset, views: int = CONTRIBUTION_VIEWS, se
     return score
 
 
-def _keep_most_important(params: STGParams, optimizer, kept: int, dataset, backend: str, seed: int) -> None:
+def _keep_top_contributors(params: STGParams, optimizer, kept: int, dataset, backend: str, seed: int) -> None:
     """Keep the `kept` Gaussians of `params` that contribute most to the training views (contribution),
     values, order and Adam moments (strategy.ops.keep_gaussians)."""
     score = contribution(params, dataset, seed=seed, backend=backend)
