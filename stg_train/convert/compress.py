@@ -65,7 +65,8 @@ class Preset:
     compact: bool = False
 
 
-#: The search aims at this fraction of a preset's PSNR loss: a margin for the views it does not render.
+#: The search aims at this fraction of a preset's PSNR loss: a margin for the views it does not render
+#: (none when the views are every frame of the held-out cameras: Views.complete).
 SAFETY = 0.7
 
 PRESETS = {
@@ -381,10 +382,12 @@ def file_attribute_bytes(path) -> dict[str, int]:
 @dataclass
 class Views:
     """Where quality is measured: (camera, time in seconds) pairs; references: ground-truth images
-    (H, W, 3) in [0, 1] for each view, or None when only the uncompressed render is known."""
+    (H, W, 3) in [0, 1] for each view, or None when only the uncompressed render is known; complete:
+    the pairs are every frame of the held-out cameras (the search then needs no margin: SAFETY)."""
 
     pairs: list
     references: list | None = None
+    complete: bool = False
 
     @property
     def source(self) -> str:
@@ -429,7 +432,7 @@ def dataset_views(dataset, model: Model | None = None, frames: int = 5) -> Views
         picks = [j for j in _segment_frames(model, frames) if j < dataset.num_frames]
     pairs = [(dataset.cameras[c], j / dataset.fps) for c in cams for j in picks]
     refs = [dataset.image(c, j) for c in cams for j in picks]
-    return Views(pairs, refs)
+    return Views(pairs, refs, complete=len(picks) == dataset.num_frames)
 
 
 def render_views(model: Model, views: Views) -> list[np.ndarray]:
@@ -564,15 +567,15 @@ def _search(original: Model, pruned: Model, views: Views, fixed: dict, free: lis
     """The cheapest precision per channel group of the `free` attributes within the preset's budget.
 
     The budget is the MSE against the uncompressed render that costs SAFETY x preset.max_loss_db of
-    PSNR (less what pruning and fixed encodings already cost). Each
-    group's own error (only that group reduced) is measured at 8 bits and extrapolated (4x per bit) to
-    allocate bits greedily (most error removed per stored bit first). While the measured error of the
-    whole model exceeds the budget, the group with the largest own error moves to its next option
-    (more bits, then f16, then f32)."""
+    PSNR (the whole loss where the views are complete), less what pruning and fixed encodings already
+    cost. Each group's own error (only that group reduced) is measured at 8 bits and extrapolated (4x
+    per bit) to allocate bits greedily (most error removed per stored bit first). While the measured
+    error of the whole model exceeds the budget, the group with the largest own error moves to its
+    next option (more bits, then f16, then f32)."""
     before = render_views(original, views)
     model_mse = (mse(before, views.references) if views.references is not None
                  else 10.0 ** (-preset.assumed_psnr / 10.0))
-    budget = budget_mse(SAFETY * preset.max_loss_db, model_mse)
+    budget = budget_mse((1.0 if views.complete else SAFETY) * preset.max_loss_db, model_mse)
     if preset.compact and prune_importance:
         pruned = _prune_within(pruned, views, before, PRUNE_SHARE * budget, settings)
     reference = render_views(pruned, views)

@@ -8,7 +8,8 @@ import pytest
 from stg_runtime import Camera, Model, Player, Segment
 from stg_runtime import format as stg_format
 from stg_train.cli.convert import main
-from stg_train.convert.compress import Views, importance, mse, prune_least_important, render_views
+from stg_train.convert.compress import (SAFETY, Views, budget_mse, compress, dataset_views, importance, mse,
+                                        prune_least_important, render_views)
 from stg_train.convert.finetune import (_segment_of, contribution, finetune, finetune_file, params_of,
                                         prune_schedule)
 from stg_train.data import load_dataset
@@ -138,6 +139,17 @@ def test_contribution_sees_occlusion():
     front, back = contribution(params_of(both, "lite"), one_view(cam), views=1)
     (alone,) = contribution(params_of(gaussians([3.0]), "lite"), one_view(cam), views=1)
     assert back < 0.2 * alone and back < 0.2 * front
+
+
+def test_the_search_keeps_a_margin_unless_it_sees_every_held_out_frame(scene):
+    _, ds, path = scene
+    model = stg_format.load(path)
+    some, every = dataset_views(ds, model, 2), dataset_views(ds, model, ds.num_frames)
+    assert len(some.pairs) == 2 and not some.complete and every.complete
+    for views, share in ((some, SAFETY), (every, 1.0)):
+        _, settings = compress(model, "web", views=views)
+        model_mse = mse(render_views(model, views), views.references)
+        assert settings.budget_mse == pytest.approx(budget_mse(share * 0.3, model_mse), rel=1e-9)
 
 
 def test_finetuned_web_file_reads_back_in_the_runtime(scene, tmp_path):
