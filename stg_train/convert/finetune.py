@@ -55,7 +55,8 @@ PRUNE_STAGES = 5
 PRUNE_SPAN = 0.5
 #: The held-out camera's frames (spread over the video; all of a 30-frame clip) on which pruning,
 #: fine-tuning and the preset's search are measured (compress's own default, 5, misjudges the loss
-#: of fine-tuned models: docs/convert.md, "Fine-tuning").
+#: of fine-tuned models: docs/convert.md, "Fine-tuning"). Where they are every frame, the search keeps
+#: no margin (compress.Views.complete).
 VIEW_FRAMES = 30
 #: Pruning while fine-tuning ranks the Gaussians by their blending weight summed over this many random
 #: training views (contribution; 60 and 300 views prune alike, docs/convert.md).
