@@ -14,7 +14,8 @@ LR_SCALE, no densification) while dropping the `prune` Gaussians that contribute
 training views (contribution: blending weight summed over random views, of the values at the
 time) in PRUNE_STAGES equal shares over the first half of the steps, then compress the result with the
 preset, whose error budget is what is left of the preset's PSNR loss after what pruning and
-fine-tuning cost on the held-out views (measured against the original model's PSNR there).
+fine-tuning cost on the held-out views, or the loss plus what they gained (measured against the
+original model's PSNR there).
 Fine-tuning recovers most of what pruning lost, so the file has fewer Gaussians at the same
 quantisation. With quantised_steps, the compressed model is then fine-tuned through straight-through
 fake quantisation one option below the bits chosen (QAT_LOWER) and searched again without pruning;
@@ -278,7 +279,7 @@ def compress_finetuned(model: Model, dataset, steps: int, preset: str = "web", p
     tuned = finetune(model, dataset, steps, seed, prune=prune, stages=stages)
     info = FinetuneInfo(model.segments[0].count, tuned.segments[0].count, int(steps), time.perf_counter() - start,
                         _psnr(model, views), _psnr(pruned, views), _psnr(tuned, views))
-    spent = max(0.0, info.psnr_original - info.psnr_finetuned)
+    spent = info.psnr_original - info.psnr_finetuned  # < 0 where fine-tuning gained: more is left
     left = max(0.0, PRESETS[preset].max_loss_db - spent)
     out, settings = compress(tuned, preset, views=views, max_loss_db=left)
     if quantised_steps > 0:
@@ -305,7 +306,7 @@ def _requantised(out: Model, settings: Settings, dataset, views, steps: int, pre
     qat = finetune_quantised(out, dataset, steps, bits, seed)
     info.quantised_steps, info.psnr_quantised = int(steps), _psnr(qat, views)
     loss = PRESETS[preset].max_loss_db
-    left = max(0.0, loss - max(0.0, info.psnr_original - info.psnr_quantised))
+    left = max(0.0, loss - (info.psnr_original - info.psnr_quantised))
     again, again_settings = compress(qat, preset, views=views, max_loss_db=left, prune_opacity=None,
                                      prune_unseen=False, prune_importance=False)
     info.seconds += time.perf_counter() - start

@@ -10,8 +10,8 @@ from stg_runtime import format as stg_format
 from stg_train.cli.convert import main
 from stg_train.convert.compress import (SAFETY, Views, budget_mse, compress, dataset_views, importance, mse,
                                         prune_least_important, render_views)
-from stg_train.convert.finetune import (_segment_of, contribution, finetune, finetune_file, params_of,
-                                        prune_schedule)
+from stg_train.convert.finetune import (_segment_of, compress_finetuned, contribution, finetune, finetune_file,
+                                        params_of, prune_schedule)
 from stg_train.data import load_dataset
 from stg_train.metrics import psnr_of_mse
 
@@ -150,6 +150,15 @@ def test_the_search_keeps_a_margin_unless_it_sees_every_held_out_frame(scene):
         _, settings = compress(model, "web", views=views)
         model_mse = mse(render_views(model, views), views.references)
         assert settings.budget_mse == pytest.approx(budget_mse(share * 0.3, model_mse), rel=1e-9)
+
+
+def test_what_fine_tuning_gains_the_search_may_spend(scene):
+    _, ds, path = scene
+    _, settings, info = compress_finetuned(stg_format.load(path), ds, 20, "web", 0.2)
+    gain = info.psnr_finetuned - info.psnr_original
+    assert gain > 0.5  # the 40-step model is far from converged
+    tuned_mse = 10.0 ** (-info.psnr_finetuned / 10.0)
+    assert settings.budget_mse == pytest.approx(budget_mse(0.3 + gain, tuned_mse), rel=1e-6)
 
 
 def test_finetuned_web_file_reads_back_in_the_runtime(scene, tmp_path):
