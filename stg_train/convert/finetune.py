@@ -279,12 +279,17 @@ def compress_finetuned(model: Model, dataset, steps: int, preset: str = "web", p
     tuned = finetune(model, dataset, steps, seed, prune=prune, stages=stages)
     info = FinetuneInfo(model.segments[0].count, tuned.segments[0].count, int(steps), time.perf_counter() - start,
                         _psnr(model, views), _psnr(pruned, views), _psnr(tuned, views))
-    spent = info.psnr_original - info.psnr_finetuned  # < 0 where fine-tuning gained: more is left
-    left = max(0.0, PRESETS[preset].max_loss_db - spent)
+    left = _loss_left(PRESETS[preset].max_loss_db, info.psnr_original, info.psnr_finetuned)
     out, settings = compress(tuned, preset, views=views, max_loss_db=left)
     if quantised_steps > 0:
         out, settings = _requantised(out, settings, dataset, views, quantised_steps, preset, seed + 1, info)
     return out, settings, info
+
+
+def _loss_left(loss: float, psnr_original: float, psnr: float) -> float:
+    """The PSNR loss (dB) a search may still spend on a model of `psnr` so that the file stays within
+    `loss` of `psnr_original`: less where the model is below the original, more where above."""
+    return max(0.0, loss - (psnr_original - psnr))
 
 
 def _file_bytes(model: Model, settings: Settings) -> int:
@@ -306,7 +311,7 @@ def _requantised(out: Model, settings: Settings, dataset, views, steps: int, pre
     qat = finetune_quantised(out, dataset, steps, bits, seed)
     info.quantised_steps, info.psnr_quantised = int(steps), _psnr(qat, views)
     loss = PRESETS[preset].max_loss_db
-    left = max(0.0, loss - (info.psnr_original - info.psnr_quantised))
+    left = _loss_left(loss, info.psnr_original, info.psnr_quantised)
     again, again_settings = compress(qat, preset, views=views, max_loss_db=left, prune_opacity=None,
                                      prune_unseen=False, prune_importance=False)
     info.seconds += time.perf_counter() - start
