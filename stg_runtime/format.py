@@ -97,15 +97,32 @@ def _channels(a: np.ndarray) -> np.ndarray:
     return a.reshape(a.shape[0], math.prod(a.shape[1:]))
 
 
-def _affine(a: np.ndarray, levels: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per-channel float32 (offset, scale) = (min, (max - min) / levels), scale rounded up to float32."""
+def _round_up(exact: np.ndarray) -> np.ndarray:
+    """float64 -> the float32 values at or just above."""
+    scale = exact.astype(np.float32)
+    return np.where(scale < exact, np.nextafter(scale, np.float32(np.inf)), scale)
+
+
+def _affine(a: np.ndarray, levels: int, zero_level: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Per-channel float32 (offset, scale) = (min, (max - min) / levels), scale rounded up to float32.
+
+    zero_level (the acB writer's rule, formats/stg-v1.md "Arithmetic-coded fixed point"): a channel
+    whose values span 0 (min <= 0 <= max, min < max; levels >= 2) gets scale = (max - min) /
+    (levels - 1), rounded up, and offset = scale x floor(min / scale), so that 0 is a level and the
+    levels still cover [min, max]; values on those levels give the same levels again."""
     x = _channels(a)
     if x.shape[0] == 0:
         return np.zeros(x.shape[1], np.float32), np.zeros(x.shape[1], np.float32)
     lo, hi = x.min(axis=0), x.max(axis=0)
-    exact = (hi.astype(np.float64) - lo) / levels
-    scale = exact.astype(np.float32)
-    return lo, np.where(scale < exact, np.nextafter(scale, np.float32(np.inf)), scale)
+    span = hi.astype(np.float64) - lo
+    offset, scale = lo, _round_up(span / levels)
+    if zero_level and levels >= 2:
+        spans_zero = (lo <= 0) & (hi >= 0) & (span > 0)
+        step = _round_up(span / (levels - 1)).astype(np.float64)
+        below = np.floor(lo / np.where(spans_zero, step, 1.0)) * step
+        offset = np.where(spans_zero, below, lo).astype(np.float32)
+        scale = np.where(spans_zero, step, scale).astype(np.float32)
+    return offset, scale
 
 
 def quantize(array, encoding: str) -> tuple[np.ndarray, dict]:
@@ -125,7 +142,7 @@ def quantize(array, encoding: str) -> tuple[np.ndarray, dict]:
     if encoding in ("f32", "f16"):
         return a.astype(ENCODINGS[encoding]), {}
     levels = _levels(encoding)
-    offset, scale = _affine(a, levels)
+    offset, scale = _affine(a, levels, zero_level=ac_bits(encoding) is not None)
     q = np.rint((_channels(a) - offset.astype(np.float64)) / np.where(scale > 0, scale, 1.0))
     stored = np.clip(q, 0, levels).astype(ENCODINGS.get(encoding, np.dtype("<u2"))).reshape(a.shape)
     return stored, {"offset": offset.tolist(), "scale": scale.tolist()}
@@ -158,7 +175,7 @@ def error_bound(array, encoding: str):
         return 0.0
     if encoding == "f16":
         return np.where(np.abs(x) >= 2.0**-14, np.abs(x) * 2.0**-11, 2.0**-25)
-    _, scale = _affine(x.astype(np.float32), _levels(encoding))
+    _, scale = _affine(x.astype(np.float32), _levels(encoding), zero_level=ac_bits(encoding) is not None)
     biggest = np.abs(x).max(axis=0) if x.shape[0] else np.zeros(x.shape[1])
     return scale / 2.0 + 2.0**-23 * biggest
 

@@ -11,9 +11,10 @@
 Quantisation-aware fine-tuning renders what a reader decodes: the raw parameters become the file's
 attributes (as stg_train.raw.to_file_arrays with time scale 1, in float32), each attribute goes
 through the writer's quantisation at the chosen bits (compress.compact_snapped, the very function the
-web preset's search and writer use: B bits are 2^B levels per channel, offset = min and scale =
-(max - min) / (2^B - 1) of the current values), and the Gaussians are evaluated from those values
-(`written`: the snapped values once more through their encoding, as the writer stores them). The
+web preset's search and writer use: B bits are 2^B levels per channel from the current values'
+minimum to their maximum, with 0 on a level where they span it; stg_runtime.format.quantize), and
+the Gaussians are evaluated from those values (`written`: the snapped values once more through their
+encoding, as the writer stores them). The
 forward value is exactly the decoded value (float32); the gradient passes straight through the
 rounding (d quantised / d value = 1).
 """

@@ -72,6 +72,25 @@ def test_streams_that_are_not_whole_are_refused():
         range_coder.encode(symbols, 5)
 
 
+def test_ac_channels_that_span_zero_have_zero_on_a_level():
+    """The acB writer's rule: exact zeros decode to 0 (float32 rounding), within the bound, and values
+    already on the levels are written again to the same values; channels that do not span 0, and u8 /
+    u16, keep offset = min."""
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(500, 3)).astype(np.float32)
+    x[:200, :2] = 0.0
+    x[:, 2] = np.abs(x[:, 2]) + 0.5
+    for bits in (2, 5, 12, 16):
+        stored, params = stg_format.quantize(x, f"ac{bits}")
+        back = stg_format.dequantize(stored, f"ac{bits}", params)
+        assert np.all(np.abs(back[:200, :2]) <= 1e-6 * np.abs(x).max())
+        assert np.all(np.abs(back - x) <= stg_format.error_bound(x, f"ac{bits}"))
+        stored2, params2 = stg_format.quantize(back, f"ac{bits}")
+        np.testing.assert_allclose(stg_format.dequantize(stored2, f"ac{bits}", params2), back, rtol=0, atol=1e-6)
+        assert params["offset"][2] == x[:, 2].min()
+    assert stg_format.quantize(x, "u8")[1]["offset"] == list(x.min(axis=0).astype(np.float64))
+
+
 def test_the_format_allows_the_widths_the_coder_codes():
     assert stg_format.MAX_AC_BITS == range_coder.MAX_BITS
 
