@@ -16,7 +16,8 @@ against the training frames pruning --prune of the Gaussians, those that contrib
 training views, in --prune-stages stages, then web within what is left); --only-finetune skips the
 presets, --preset P (repeatable) keeps only P's rows. --finetune-quantised M (repeatable) then
 fine-tunes M more steps through fake quantisation below the bits web chose and searches again
-(stg-convert compress --finetune-quantised M).
+(stg-convert compress --finetune-quantised M). --still D (repeatable) holds the Gaussians that move
+less than D x the cameras' extent still while fine-tuning (stg-convert compress --still D).
 """
 from __future__ import annotations
 
@@ -64,6 +65,9 @@ def main() -> None:
     ap.add_argument("--prune-stages", type=int, action="append", default=[], metavar="K",
                     help="with --finetune: prune in K stages while fine-tuning (repeatable; default "
                          "stg_train.convert.finetune.PRUNE_STAGES)")
+    ap.add_argument("--still", type=float, action="append", default=[], metavar="D",
+                    help="with --finetune: hold Gaussians that move less than D x the extent still "
+                         "(repeatable; default 0)")
     ap.add_argument("--preset", action="append", choices=list(PRESETS), default=[],
                     help="only this preset's rows (repeatable; default all)")
     ap.add_argument("--only-finetune", action="store_true", help="skip the presets' rows")
@@ -90,7 +94,8 @@ def main() -> None:
         for prune in args.prune or [0.5]:
             for quantised in args.finetune_quantised or [0]:
                 for stages in args.prune_stages or [None]:
-                    rows.append(finetune_row(model_path, ds, out, steps, prune, base, quantised, stages))
+                    for still in args.still or [0.0]:
+                        rows.append(finetune_row(model_path, ds, out, steps, prune, base, quantised, stages, still))
     for preset, with_data in runs:
         name = preset if with_data else f"{preset}, no --data"
         path = out / f"model.{preset}{'' if with_data else '.nodata'}.stg"
@@ -109,22 +114,23 @@ def main() -> None:
 
 
 def finetune_row(model_path, ds, out: Path, steps: int, prune: float, base: float, quantised: int = 0,
-                 stages: int | None = None) -> tuple:
+                 stages: int | None = None, still: float = 0.0) -> tuple:
     """The table row of web after `steps` fine-tuning steps pruning `prune` in `stages` (default
-    PRUNE_STAGES) and `quantised` quantisation-aware ones (finetune_file)."""
+    PRUNE_STAGES), holding still those that move less than `still` x the extent, and `quantised`
+    quantisation-aware ones (finetune_file)."""
     from stg_train.convert.finetune import PRUNE_STAGES, finetune_file
 
     stages = PRUNE_STAGES if stages is None else stages
-    path = out / f"model.web.ft{steps}.p{round(100 * prune)}.k{stages}.q{quantised}.stg"
+    path = out / f"model.web.ft{steps}.p{round(100 * prune)}.k{stages}.q{quantised}.s{round(100 * still)}.stg"
     start = time.perf_counter()
     report, info = finetune_file(model_path, path, ds, steps, "web", prune, quantised_steps=quantised,
-                                 stages=stages)
+                                 stages=stages, still=still)
     seconds = time.perf_counter() - start
     print(report.format(), flush=True)
     print(info.format(), flush=True)
     psnr = evaluate_player(Player(path, device="cpu"), ds)["psnr"]
     name = (f"web, prune {prune:g} in {stages} + fine-tune {steps}"
-            + (f" + quantised {quantised}" if quantised else ""))
+            + (f" + quantised {quantised}" if quantised else "") + (f", still {still:g}" if still else ""))
     return (name, report.file_after, report.gaussians_after, psnr, psnr - base,
             seconds, load_seconds(path))
 

@@ -157,6 +157,10 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--prune-stages", type=positive_int, default=PRUNE_STAGES, metavar="K",
                    help="with --finetune: drop them in K equal shares over the first half of the steps, "
                         "ranked again each time (default %(default)s; 1: all before the first step)")
+    c.add_argument("--still", type=_fraction, default=0.0, metavar="D",
+                   help="with --finetune: Gaussians whose centre moves less than D x the training cameras' "
+                        "extent while drawn lose their motion and rotation velocity, which the web preset "
+                        "then stores almost for free (default 0: none; docs/convert.md, 'Still Gaussians')")
     c.add_argument("--finetune-quantised", type=positive_int, default=None, metavar="M",
                    help="with --finetune: then fine-tune M more steps through fake quantisation one step "
                         "below the bits the preset chose and search again; the smaller file within the "
@@ -281,6 +285,8 @@ def _compress(args, parser) -> int:
         return error(PROG, "--finetune-quantised needs --finetune (and --data)")
     if args.prune_stages != PRUNE_STAGES and args.finetune is None:
         return error(PROG, "--prune-stages needs --finetune (and --data)")
+    if args.still and args.finetune is None:
+        return error(PROG, "--still needs --finetune (and --data)")
     if args.finetune is not None and not args.data:
         return error(PROG, "--finetune needs --data (the frames to fine-tune against)")
     if args.finetune is not None and (encodings or len(overrides) > 1):
@@ -294,7 +300,7 @@ def _compress(args, parser) -> int:
 
         report, info = finetune_file(args.input, args.output, dataset, args.finetune, args.preset,
                                      args.prune_fraction, quantised_steps=args.finetune_quantised or 0,
-                                     stages=args.prune_stages)
+                                     stages=args.prune_stages, still=args.still)
         print(report.format())
         print(info.format())
         print(f"wrote {args.output}")

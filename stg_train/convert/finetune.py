@@ -1,7 +1,7 @@
 """Compression with fine-tuning against the training frames (issue 50, item 4; torch).
 
     params_of(segment, kind) -> STGParams                        a file segment as trainable raw tensors
-    finetune(model, dataset, steps, prune=0, stages=1) -> Model  N photometric steps on the training cameras
+    finetune(model, dataset, steps, prune=0, stages=1, still=0) -> Model  N photometric steps on the training cameras
     prune_schedule(count, steps, prune, stages) -> {step: kept}  when fine-tuning prunes, and to how many
     contribution(params, dataset, views) -> (N,)                 blending weight summed over training views
     finetune_quantised(model, dataset, steps, bits) -> Model     the same through fake quantisation (qat.py)
@@ -12,7 +12,9 @@ The recipe measured in docs/convert.md ("Fine-tuning"): fine-tune for `steps` st
 training cameras' frames (the trainer's loss, L1 + D-SSIM, Adam at the trainer's rates times
 LR_SCALE, no densification) while dropping the `prune` Gaussians that contribute least to the
 training views (contribution: blending weight summed over random views, of the values at the
-time) in PRUNE_STAGES equal shares over the first half of the steps, then compress the result with the
+time) in PRUNE_STAGES equal shares over the first half of the steps, and with `still`, holding the
+Gaussians whose centre moves less than `still` x the scene's extent while drawn (still.py) at zero
+motion and rotation velocity, chosen again after each pruning; then compress the result with the
 preset, whose error budget is what is left of the preset's PSNR loss after what pruning and
 fine-tuning cost on the held-out views, or the loss plus what they gained (measured against the
 original model's PSNR there).
@@ -45,6 +47,7 @@ from .compress import (PRESETS, Report, Settings, _with_segments, compress, data
                        mse, render_views, report)
 from ..metrics import psnr_of_mse
 from .qat import gaussians_of_file, lowered, quantised_tensors, snapped_segment
+from .still import still_mask
 
 #: Fine-tuning rates: the trainer's (params.LearningRates, positions at their final rate) times this.
 LR_SCALE = 0.5
@@ -79,6 +82,7 @@ class FinetuneInfo:
     psnr_original: float
     psnr_pruned: float
     psnr_finetuned: float
+    still: int = 0
     quantised_steps: int = 0
     psnr_quantised: float | None = None
     quantised_kept: bool = False
@@ -88,6 +92,7 @@ class FinetuneInfo:
         return (f"fine-tune: {self.gaussians} -> {self.kept} Gaussians, {self.steps} steps in {self.seconds:.0f} s; "
                 f"held-out PSNR {self.psnr_original:.2f} dB, pruned {self.psnr_pruned:.2f}, "
                 f"fine-tuned {self.psnr_finetuned:.2f}"
+                + (f"; {self.still} of them still" if self.still else "")
                 + ("" if not self.quantised_steps else
                    f"; {self.quantised_steps} quantisation-aware steps: {self.psnr_quantised:.2f} dB, "
                    f"searched again: {self.candidates[1][0]} bytes at {self.candidates[1][1]:.2f} dB against "
@@ -157,15 +162,19 @@ def prune_schedule(count: int, steps: int, prune: float, stages: int) -> dict[in
 
 
 def finetune(model: Model, dataset, steps: int, seed: int = 0, lr_scale: float = LR_SCALE,
-             prune: float = 0.0, stages: int = 1) -> Model:
+             prune: float = 0.0, stages: int = 1, still: float = 0.0) -> Model:
     """`model` (one segment, frames 0..dataset.num_frames-1) after `steps` Adam steps of the trainer's
     loss on one random training camera and frame each; no Gaussian is added. With `prune`, those
     that contribute least (contribution, of the current values) are removed in `stages` prunings
-    (prune_schedule), the fraction `prune` (0-1) of them in all."""
+    (prune_schedule), the fraction `prune` (0-1) of them in all. With `still` > 0, the Gaussians
+    whose centre moves less than `still` x the training cameras' extent (params.extent_of) while
+    drawn get motion and rotation velocity 0 and keep them (still.still_mask; chosen before the first
+    step and again after each pruning)."""
     _check(model, dataset)
     seg = model.segments[0]
     params = params_of(seg, model.kind)
-    _tune(params, dataset, steps, seed, lr_scale, prunes=prune_schedule(seg.count, steps, prune, stages), like=seg)
+    _tune(params, dataset, steps, seed, lr_scale, prunes=prune_schedule(seg.count, steps, prune, stages), like=seg,
+          still=still)
     with torch.no_grad():
         return _with_segments(model, [_segment_of(params, seg)])
 
@@ -186,20 +195,25 @@ def finetune_quantised(model: Model, dataset, steps: int, bits: dict, seed: int 
 
 
 def _tune(params: STGParams, dataset, steps: int, seed: int, lr_scale: float, bits: dict | None = None,
-          like: Segment | None = None, prunes: dict[int, int] | None = None) -> None:
+          like: Segment | None = None, prunes: dict[int, int] | None = None, still: float = 0.0) -> None:
     """`steps` Adam steps on `params` (in place): the trainer's loss on one random training camera and
     frame each, rendered through fake quantisation at `bits` (segment layout `like`) when given; at
     each step of `prunes` only that many Gaussians, those that contribute most, are kept (with their
-    Adam state)."""
+    Adam state). With `still` > 0, the still Gaussians (see finetune) are chosen at step 0 and at each
+    step of `prunes`, and their motion and rotation velocity are set to 0 after every Adam step."""
     lr = LearningRates().scaled(lr_scale)
     extent = extent_of([dataset.cameras[i] for i in dataset.train_cameras])
     groups = params.param_groups(replace(lr, xyz_init=lr.xyz_final), extent)
     optimizer = torch.optim.Adam(groups, eps=1e-15)
     rng = np.random.default_rng(seed)
     backend = resolve_backend("auto", "cpu")
+    choose_still = {0, *(prunes or {})} if still > 0 else set()
+    held = None
     for step in range(int(steps)):
         if prunes and step in prunes:
             _keep_top_contributors(params, optimizer, prunes.pop(step), dataset, backend, seed + step)
+        if step in choose_still:
+            held = _hold_still(params, still * extent, like)
         ci, frame = _random_view(rng, dataset)
         cam = dataset.cameras[ci]
         tau = frame_time(dataset, frame)
@@ -214,8 +228,30 @@ def _tune(params: STGParams, dataset, steps: int, seed: int, lr_scale: float, bi
         loss.backward()
         optimizer.step()
         optimizer.zero_grad(set_to_none=True)
+        if held is not None:
+            _zero_velocities(params, held)
     for kept in (prunes or {}).values():  # no steps: prune all the same
         _keep_top_contributors(params, optimizer, kept, dataset, backend, seed)
+    if choose_still and int(steps) <= 0:
+        _hold_still(params, still * extent, like)
+
+
+def _hold_still(params: STGParams, distance: float, like: Segment) -> torch.Tensor:
+    """(N,) bool: the Gaussians of `params` whose centre moves less than `distance` (world units) while
+    drawn over `like`'s frames (still.still_mask, of the current values); their motion and rotation
+    velocity are set to 0."""
+    with torch.no_grad():
+        arrays = to_file_arrays({k: v.detach().cpu().numpy() for k, v in params.raw.items()})
+        mask = torch.from_numpy(still_mask(Segment(0, like.num_frames, **arrays), distance))
+        _zero_velocities(params, mask)
+    return mask
+
+
+def _zero_velocities(params: STGParams, mask: torch.Tensor) -> None:
+    """Set the motion and rotation velocity (omega) rows of `mask` (N,) bool to 0, in place."""
+    with torch.no_grad():
+        params.raw["motion"][mask] = 0.0
+        params.raw["omega"][mask] = 0.0
 
 
 def _random_view(rng: np.random.Generator, dataset) -> tuple[int, int]:
@@ -259,12 +295,13 @@ def _psnr(model: Model, views) -> float:
 
 
 def compress_finetuned(model: Model, dataset, steps: int, preset: str = "web", prune: float = 0.3,
-                       seed: int = 0, quantised_steps: int = 0,
-                       stages: int = PRUNE_STAGES) -> tuple[Model, Settings, FinetuneInfo]:
+                       seed: int = 0, quantised_steps: int = 0, stages: int = PRUNE_STAGES,
+                       still: float = 0.0) -> tuple[Model, Settings, FinetuneInfo]:
     """Fine-tune `steps` steps while pruning the `prune` fraction (0-1) of least important Gaussians
-    in `stages` (prune_schedule), and compress with `preset` within what is left of its PSNR loss
-    (see the module doc). With `quantised_steps`, then fine-tune that many steps through fake
-    quantisation at QAT_LOWER options below the bits chosen and search again (_requantised).
+    in `stages` (prune_schedule) and holding still Gaussians with `still` (finetune), and compress with
+    `preset` within what is left of its PSNR loss (see the module doc). With `quantised_steps`, then
+    fine-tune that many steps through fake quantisation at QAT_LOWER options below the bits chosen
+    and search again (_requantised).
     Returns the compressed model, its Settings and a FinetuneInfo."""
     import time
 
@@ -272,18 +309,27 @@ def compress_finetuned(model: Model, dataset, steps: int, preset: str = "web", p
         raise ValueError(f"fine-tuning takes a lossy preset, not {preset!r}")
     if not 0.0 <= prune < 1.0:
         raise ValueError(f"prune must be in [0, 1), got {prune}")
+    if not still >= 0.0:
+        raise ValueError(f"still must be >= 0, got {still}")
     _check(model, dataset)
     views = dataset_views(dataset, model, VIEW_FRAMES)
     pruned = finetune(model, dataset, 0, seed, prune=prune)
     start = time.perf_counter()
-    tuned = finetune(model, dataset, steps, seed, prune=prune, stages=stages)
+    tuned = finetune(model, dataset, steps, seed, prune=prune, stages=stages, still=still)
     info = FinetuneInfo(model.segments[0].count, tuned.segments[0].count, int(steps), time.perf_counter() - start,
-                        _psnr(model, views), _psnr(pruned, views), _psnr(tuned, views))
+                        _psnr(model, views), _psnr(pruned, views), _psnr(tuned, views),
+                        still=_still_count(tuned.segments[0]) if still > 0 else 0)
     left = _loss_left(PRESETS[preset].max_loss_db, info.psnr_original, info.psnr_finetuned)
     out, settings = compress(tuned, preset, views=views, max_loss_db=left)
     if quantised_steps > 0:
         out, settings = _requantised(out, settings, dataset, views, quantised_steps, preset, seed + 1, info)
     return out, settings, info
+
+
+def _still_count(segment: Segment) -> int:
+    """How many Gaussians of `segment` have no motion and no rotation velocity at all."""
+    return int(np.sum(~np.any(segment.position[:, 1:] != 0, axis=(1, 2)) & ~np.any(segment.rotation[:, 1:] != 0,
+                                                                                  axis=(1, 2))))
 
 
 def _loss_left(loss: float, psnr_original: float, psnr: float) -> float:
@@ -327,18 +373,19 @@ def _requantised(out: Model, settings: Settings, dataset, views, steps: int, pre
 
 
 def finetune_file(in_path, out_path, dataset, steps: int, preset: str = "web", prune: float = 0.3,
-                  seed: int = 0, quantised_steps: int = 0,
-                  stages: int = PRUNE_STAGES) -> tuple[Report, FinetuneInfo]:
+                  seed: int = 0, quantised_steps: int = 0, stages: int = PRUNE_STAGES,
+                  still: float = 0.0) -> tuple[Report, FinetuneInfo]:
     """Read `in_path`, compress_finetuned it against `dataset`, write `out_path` atomically; the report
     compares with the input file. ValueError (the file named) for a model fine-tuning cannot take."""
     model = stg_format.load(in_path)
     try:
         compressed, settings, info = compress_finetuned(model, dataset, steps, preset, prune, seed,
-                                                        quantised_steps, stages)
+                                                        quantised_steps, stages, still)
     except ValueError as e:
         raise ValueError(f"{os.fsdecode(in_path)}: {e}") from None
     compressed.provenance["compress"]["finetune"] = {"steps": int(steps), "prune": float(prune), "seed": int(seed),
-                                                       "quantised_steps": int(quantised_steps), "stages": int(stages)}
+                                                       "quantised_steps": int(quantised_steps), "stages": int(stages),
+                                                       "still": float(still)}
     rep = report(model, compressed, settings, dataset_views(dataset, model, VIEW_FRAMES),
                  file_attribute_bytes(in_path), os.path.getsize(in_path))
     stg_format.save(compressed, out_path, **settings.save_kwargs())

@@ -238,6 +238,7 @@ COMPRESS = Command(
          ("--finetune", "0"): "--finetune", ("--finetune-quantised", "2"): "--finetune-quantised.*--finetune",
          ("--finetune-quantised", "0"): "--finetune-quantised", ("--prune-stages", "0"): "--prune-stages",
          ("--prune-stages", "2"): "--prune-stages.*--finetune",
+         ("--still", "0.2"): "--still.*--finetune", ("--still", "2"): "--still", ("--still", "x"): "--still",
          ("!", "compress", "{model}", "{model}"): "model.stg.*input",
          ("!", "compress", "{model}", "{folder}"): "folder", ("!", "compress", "{model}", "{missing}/x.stg"): "missing",
          ("!", "compress", "{missing}", "{out}.stg"): "missing", ("!", "compress", "{empty}", "{out}.stg"): "empty",
