@@ -328,8 +328,8 @@ def compress_finetuned(model: Model, dataset, steps: int, preset: str = "web", p
 
 def _still_count(segment: Segment) -> int:
     """How many Gaussians of `segment` have no motion and no rotation velocity at all."""
-    return int(np.sum(~np.any(segment.position[:, 1:] != 0, axis=(1, 2)) & ~np.any(segment.rotation[:, 1:] != 0,
-                                                                                  axis=(1, 2))))
+    moving = np.any(segment.position[:, 1:] != 0, axis=(1, 2)) | np.any(segment.rotation[:, 1:] != 0, axis=(1, 2))
+    return int(np.sum(~moving))
 
 
 def _loss_left(loss: float, psnr_original: float, psnr: float) -> float:

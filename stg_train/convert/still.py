@@ -3,11 +3,10 @@
     travel(segment) -> (N,)              how far each centre gets from its position at the temporal centre
     still_mask(segment, distance) -> (N,) bool   travel below `distance`
 
-A trained model gives almost every Gaussian some motion, also on the static parts of a scene: most of
-it moves in directions the cameras hardly see (along their axes in a forward-facing rig), or over
-a short temporal window. Fine-tuning (finetune.py, `still`) sets the motion and rotation velocity of
-the still Gaussians to 0 and keeps them there while the others make up for it; the web preset's
-coder then stores their rows as one repeated symbol, almost for free (docs/convert.md).
+A trained model gives almost every Gaussian some motion, also on the static parts of a scene.
+Fine-tuning (finetune.py, `still`) sets the motion and rotation velocity of the still Gaussians to 0
+and keeps them there while the others make up for it; the web preset's coder then stores their rows
+as one repeated symbol, almost for free (docs/convert.md, "Still Gaussians").
 """
 from __future__ import annotations
 
