@@ -103,20 +103,22 @@ def _round_up(exact: np.ndarray) -> np.ndarray:
     return np.where(scale < exact, np.nextafter(scale, np.float32(np.inf)), scale)
 
 
-def _affine(a: np.ndarray, levels: int, zero_level: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """Per-channel float32 (offset, scale) = (min, (max - min) / levels), scale rounded up to float32.
+def _affine(a: np.ndarray, encoding: str) -> tuple[np.ndarray, np.ndarray]:
+    """Per-channel float32 (offset, scale) of a fixed-point `encoding` with `levels` = _levels(encoding):
+    (min, (max - min) / levels), scale rounded up to float32.
 
-    zero_level (the acB writer's rule, formats/stg-v1.md "Arithmetic-coded fixed point"): a channel
-    whose values span 0 (min <= 0 <= max, min < max; levels >= 2) gets scale = (max - min) /
+    acB (the writer's rule, formats/stg-v1.md "Arithmetic-coded fixed point"): a channel whose
+    values span 0 (min <= 0 <= max, min < max; levels >= 2) gets scale = (max - min) /
     (levels - 1), rounded up, and offset = scale x floor(min / scale), so that 0 is a level and the
     levels still cover [min, max]; values on those levels give the same levels again."""
     x = _channels(a)
     if x.shape[0] == 0:
         return np.zeros(x.shape[1], np.float32), np.zeros(x.shape[1], np.float32)
+    levels = _levels(encoding)
     lo, hi = x.min(axis=0), x.max(axis=0)
     span = hi.astype(np.float64) - lo
     offset, scale = lo, _round_up(span / levels)
-    if zero_level and levels >= 2:
+    if ac_bits(encoding) is not None and levels >= 2:
         spans_zero = (lo <= 0) & (hi >= 0) & (span > 0)
         step = _round_up(span / (levels - 1)).astype(np.float64)
         below = np.floor(lo / np.where(spans_zero, step, 1.0)) * step
@@ -142,7 +144,7 @@ def quantize(array, encoding: str) -> tuple[np.ndarray, dict]:
     if encoding in ("f32", "f16"):
         return a.astype(ENCODINGS[encoding]), {}
     levels = _levels(encoding)
-    offset, scale = _affine(a, levels, zero_level=ac_bits(encoding) is not None)
+    offset, scale = _affine(a, encoding)
     q = np.rint((_channels(a) - offset.astype(np.float64)) / np.where(scale > 0, scale, 1.0))
     stored = np.clip(q, 0, levels).astype(ENCODINGS.get(encoding, np.dtype("<u2"))).reshape(a.shape)
     return stored, {"offset": offset.tolist(), "scale": scale.tolist()}
@@ -175,7 +177,7 @@ def error_bound(array, encoding: str):
         return 0.0
     if encoding == "f16":
         return np.where(np.abs(x) >= 2.0**-14, np.abs(x) * 2.0**-11, 2.0**-25)
-    _, scale = _affine(x.astype(np.float32), _levels(encoding), zero_level=ac_bits(encoding) is not None)
+    _, scale = _affine(x.astype(np.float32), encoding)
     biggest = np.abs(x).max(axis=0) if x.shape[0] else np.zeros(x.shape[1])
     return scale / 2.0 + 2.0**-23 * biggest
 

@@ -240,10 +240,9 @@ def _hold_still(params: STGParams, distance: float, like: Segment) -> torch.Tens
     """(N,) bool: the Gaussians of `params` whose centre moves less than `distance` (world units) while
     drawn over `like`'s frames (still.still_mask, of the current values); their motion and rotation
     velocity are set to 0."""
-    with torch.no_grad():
-        arrays = to_file_arrays({k: v.detach().cpu().numpy() for k, v in params.raw.items()})
-        mask = torch.from_numpy(still_mask(Segment(0, like.num_frames, **arrays), distance))
-        _zero_velocities(params, mask)
+    arrays = to_file_arrays({k: v.detach().cpu().numpy() for k, v in params.raw.items()})
+    mask = torch.from_numpy(still_mask(Segment(0, like.num_frames, **arrays), distance))
+    _zero_velocities(params, mask)
     return mask
 
 

@@ -14,9 +14,8 @@ through the writer's quantisation at the chosen bits (compress.compact_snapped, 
 web preset's search and writer use: B bits are 2^B levels per channel from the current values'
 minimum to their maximum, with 0 on a level where they span it; stg_runtime.format.quantize), and
 the Gaussians are evaluated from those values (`written`: the snapped values once more through their
-encoding, as the writer stores them). The
-forward value is exactly the decoded value (float32); the gradient passes straight through the
-rounding (d quantised / d value = 1).
+encoding, as the writer stores them). The forward value is exactly the decoded value (float32); the
+gradient passes straight through the rounding (d quantised / d value = 1).
 """
 from __future__ import annotations
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from stg_runtime.model import Segment
-from stg_runtime.spec import MIN_ALPHA
+from stg_runtime.spec import MIN_ALPHA, evaluate_oracle
 
 
 def travel(segment: Segment) -> np.ndarray:
@@ -21,18 +21,12 @@ def travel(segment: Segment) -> np.ndarray:
     tau = j / num_frames (j = 0 .. num_frames - 1) where it is drawn (opacity(tau) >= MIN_ALPHA) and its
     centre at its temporal centre (position[:, 0]): what setting its motion to 0 moves it by. 0 for a
     Gaussian drawn at no frame."""
-    t_center = segment.t_center.astype(np.float64)
-    t_scale = segment.t_scale.astype(np.float64)
-    opacity = segment.opacity.astype(np.float64)
-    coefficients = segment.position.astype(np.float64)
+    centre = segment.position[:, 0].astype(np.float64)
     out = np.zeros(segment.count)
     for j in range(segment.num_frames):
-        d = j / segment.num_frames - t_center
-        drawn = opacity * np.exp(-t_scale * d * d) >= MIN_ALPHA
-        offset = np.zeros((segment.count, 3))
-        for k in range(segment.position_degree, 0, -1):  # Horner without the constant term
-            offset = (offset + coefficients[:, k]) * d[:, None]
-        out = np.where(drawn, np.maximum(out, np.linalg.norm(offset, axis=1)), out)
+        at = evaluate_oracle(segment, j / segment.num_frames)
+        offset = np.linalg.norm(at["means"] - centre, axis=1)
+        out = np.where(at["opacities"] >= MIN_ALPHA, np.maximum(out, offset), out)
     return out
 
 
